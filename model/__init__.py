@@ -1,0 +1,61 @@
+"""The physics of skinlayers: spectra, layer profiles, Gaussian tables, layered skin, colour.
+
+Pure, differentiable functions on tensors (CPU or CUDA alike); imports nothing else of the project.
+"""
+
+from .colour import ColourConverter, ita_degrees
+from .fresnel import diffuse_fresnel_reflectance, fresnel_reflectance, fresnel_transmittance
+from .gaussians import fit_gaussian_weights, gaussian_sum_hankel, gaussian_sum_profile
+from .layered import LayerTransforms, SkinModel, combine_layers, inverse_hankel
+from .params import PARAMETER_BOUNDS, PARAMETER_NAMES, TABLE2, LayerAbsorption, SkinParams, layer_absorption
+from .profiles import (
+    LayerProfiles,
+    dipole_hankel,
+    dipole_profile,
+    dipole_total,
+    multipole_hankel,
+    multipole_profiles,
+    multipole_totals,
+)
+from .settings import ModelSettings, SettingsError, SkinOptics, TableSettings, load_model_settings
+from .spectra import ChromophoreSpectra, chromophore_spectra, epidermis_scattering
+from .tables import ProfileTables, build_profile_tables, load_profile_tables
+
+__all__ = [
+    "PARAMETER_BOUNDS",
+    "PARAMETER_NAMES",
+    "TABLE2",
+    "ChromophoreSpectra",
+    "ColourConverter",
+    "LayerAbsorption",
+    "LayerProfiles",
+    "LayerTransforms",
+    "ModelSettings",
+    "ProfileTables",
+    "SettingsError",
+    "SkinModel",
+    "SkinOptics",
+    "SkinParams",
+    "TableSettings",
+    "build_profile_tables",
+    "chromophore_spectra",
+    "combine_layers",
+    "diffuse_fresnel_reflectance",
+    "dipole_hankel",
+    "dipole_profile",
+    "dipole_total",
+    "epidermis_scattering",
+    "fit_gaussian_weights",
+    "fresnel_reflectance",
+    "fresnel_transmittance",
+    "gaussian_sum_hankel",
+    "gaussian_sum_profile",
+    "inverse_hankel",
+    "ita_degrees",
+    "layer_absorption",
+    "load_model_settings",
+    "load_profile_tables",
+    "multipole_hankel",
+    "multipole_profiles",
+    "multipole_totals",
+]

@@ -1,0 +1,163 @@
+"""Homogeneous two-layer skin: the Fourier-domain layer combination (PHYSICS.md §2, §4).
+
+For homogeneous layers the heterogeneous transport of Eq. 7 collapses to products of 2D Fourier
+(Hankel) transforms. With the interface attenuation A = exp(-P) met twice per crossing,
+
+    R₁₂ = R₁⁺ + A² T₁⁺ R₂⁺ T₁⁻ / (1 - A² R₁⁻ R₂⁺)
+
+at every frequency k; at k = 0 it combines the plane integrals (totals). The layer transforms come
+either from the exact multipole (closed form, all dipole pairs: ``method="exact"``) or from the
+Gaussian tables (``method="tables"``), so each checks the other.
+
+Shapes: parameters ``(...)``, wavelengths ``(L,)`` → spectra ``(..., L)``; with frequencies ``(N,)``
+→ ``(..., L, N)``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from .gaussians import gaussian_sum_hankel
+from .params import LayerAbsorption, SkinParams, layer_absorption
+from .profiles import multipole_hankel, multipole_totals
+from .radiometry import entry_transmittance
+from .settings import ModelSettings
+from .spectra import ChromophoreSpectra, chromophore_spectra
+from .tables import ProfileTables, load_profile_tables
+
+__all__ = ["LayerTransforms", "SkinModel", "combine_layers", "inverse_hankel"]
+
+METHODS = ("exact", "tables")
+
+
+class LayerTransforms(NamedTuple):
+    """Transforms (or totals) of the five profiles the skin needs, plus the interface attenuation."""
+
+    R1_plus: torch.Tensor
+    T1_plus: torch.Tensor
+    R1_minus: torch.Tensor
+    T1_minus: torch.Tensor
+    R2_plus: torch.Tensor
+    attenuation: torch.Tensor
+
+
+def combine_layers(t: LayerTransforms) -> torch.Tensor:
+    """R₁₂ = R₁⁺ + A² T₁⁺ R₂⁺ T₁⁻ / (1 - A² R₁⁻ R₂⁺): Eq. 7's series summed in the Fourier domain."""
+    a2 = t.attenuation**2
+    return t.R1_plus + a2 * t.T1_plus * t.R2_plus * t.T1_minus / (1.0 - a2 * t.R1_minus * t.R2_plus)
+
+
+def inverse_hankel(transform: torch.Tensor, k_per_mm: torch.Tensor, r_mm: torch.Tensor) -> torch.Tensor:
+    """f(r) = (1/2π) ∫ f̂(k) J₀(kr) k dk on a (log-spaced) k grid by the trapezoid rule, ``(..., R)``."""
+    k = k_per_mm.to(transform)
+    kernel = torch.special.bessel_j0(r_mm.to(transform)[:, None] * k[None, :]) * k[None, :]
+    dk = torch.diff(k)
+    w = torch.zeros_like(k)
+    w[:-1] += 0.5 * dk
+    w[1:] += 0.5 * dk
+    return (transform * w) @ kernel.T / (2.0 * math.pi)
+
+
+class SkinModel:
+    """The homogeneous two-layer skin model with fixed settings; delegates to the pure functions."""
+
+    def __init__(self, settings: ModelSettings | None = None, cache_dir: str | None = None) -> None:
+        self.settings = settings or ModelSettings()
+        self.cache_dir = cache_dir
+        self._tables: dict[tuple[float, ...], ProfileTables] = {}
+
+    # -- inputs --------------------------------------------------------------------------------
+    def spectra(self, wavelength_nm: torch.Tensor) -> ChromophoreSpectra:
+        return chromophore_spectra(wavelength_nm, self.settings.optics)
+
+    def absorption(self, params: SkinParams, spectra: ChromophoreSpectra) -> LayerAbsorption:
+        o = self.settings.optics
+        ref = params.C_m
+        return layer_absorption(
+            params, spectra.to(ref.device, ref.dtype), o.interface_melanin_fraction, o.epidermis_thickness_mm
+        )
+
+    def tables(self, wavelength_nm: torch.Tensor, progress=None) -> ProfileTables:
+        w = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
+        key = tuple(round(float(x), 6) for x in w)
+        if key not in self._tables:
+            self._tables[key] = load_profile_tables(w, self.settings, self.cache_dir, progress)
+        return self._tables[key]
+
+    def _etas(self) -> tuple[float, float, float]:
+        o = self.settings.optics
+        return o.n_epidermis / o.n_above, o.n_epidermis / o.n_dermis, o.n_dermis / o.n_epidermis
+
+    # -- layer transforms -------------------------------------------------------------------------
+    def layer_transforms(
+        self,
+        params: SkinParams,
+        wavelength_nm: torch.Tensor,
+        k_per_mm: torch.Tensor | None = None,
+        method: str = "exact",
+        extra_absorbance: torch.Tensor | None = None,
+    ) -> LayerTransforms:
+        """Totals (``k_per_mm=None``: ``(..., L)``) or Hankel transforms (``(..., L, N)``) of the layers.
+
+        ``extra_absorbance`` ``(..., L)`` adds to the interface layer's absorbance (veins, tattoos).
+        """
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        o = self.settings.optics
+        spectra = self.spectra(wavelength_nm)
+        ab = self.absorption(params, spectra)
+        absorbance = ab.interface_absorbance if extra_absorbance is None else ab.interface_absorbance + extra_absorbance
+        attenuation = torch.exp(-absorbance)
+        eta_top, eta_mid, eta_derm = self._etas()
+        s_epi = spectra.scattering_epidermis.to(ab.epidermis)
+        s_derm = spectra.scattering_dermis.to(ab.epidermis)
+        if method == "exact":
+            d = o.epidermis_thickness_mm
+            if k_per_mm is None:
+                epi = multipole_totals(ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
+                derm = multipole_totals(ab.dermis, s_derm, math.inf, eta_derm, 1.0)
+            else:
+                k = torch.as_tensor(k_per_mm).to(ab.epidermis)
+                epi = multipole_hankel(k, ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
+                derm = multipole_hankel(k, ab.dermis, s_derm, math.inf, eta_derm, 1.0)
+            r2 = derm.R_plus
+        else:
+            tab = self.tables(wavelength_nm).to(ab.epidermis.device, ab.epidermis.dtype)
+            look = lambda layer, p, sa: tab.lookup(layer, p, sa)  # noqa: E731
+            if k_per_mm is None:
+                value = lambda w: w.sum(-1)  # noqa: E731
+            else:
+                k = torch.as_tensor(k_per_mm).to(ab.epidermis)
+                value = lambda w: gaussian_sum_hankel(w, tab.variances_mm2, k)  # noqa: E731
+            epi = [value(look("epidermis", p, ab.epidermis)) for p in ("R_plus", "T_plus", "R_minus", "T_minus")]
+            r2 = value(look("dermis", "R_plus", ab.dermis))
+        if k_per_mm is not None:
+            attenuation = attenuation[..., None]
+        return LayerTransforms(epi[0], epi[1], epi[2], epi[3], r2, attenuation)
+
+    # -- results ------------------------------------------------------------------------------------
+    def total_reflectance(
+        self, params: SkinParams, wavelength_nm: torch.Tensor, method: str = "exact", extra_absorbance=None
+    ) -> torch.Tensor:
+        """Plane integral of the combined profile R₁₂ per unit *entering* power, ``(..., L)``."""
+        return combine_layers(self.layer_transforms(params, wavelength_nm, None, method, extra_absorbance))
+
+    def diffuse_reflectance(
+        self, params: SkinParams, wavelength_nm: torch.Tensor, method: str = "exact", extra_absorbance=None
+    ) -> torch.Tensor:
+        """Hemispherical diffuse reflectance R_d = F_t(0) R₁₂ for normal, collimated light, ``(..., L)``.
+
+        Specular reflection excluded (see ``radiometry`` for the convention).
+        """
+        o = self.settings.optics
+        f_t = entry_transmittance(o.n_epidermis, o.n_above)
+        return f_t * self.total_reflectance(params, wavelength_nm, method, extra_absorbance)
+
+    def combined_hankel(
+        self, params: SkinParams, wavelength_nm: torch.Tensor, k_per_mm: torch.Tensor, method: str = "exact"
+    ) -> torch.Tensor:
+        """Hankel transform of the combined reflectance profile R₁₂(k), ``(..., L, N)``."""
+        return combine_layers(self.layer_transforms(params, wavelength_nm, k_per_mm, method))

@@ -1,0 +1,173 @@
+"""Typed settings of the skin model, with the published constants as defaults.
+
+Every number the physics uses lives here, once, with its source (PHYSICS.md; Donner et al. 2008,
+"DWRR08" below). YAML files (``configs/model.yaml``) override fields; unknown keys are refused.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+__all__ = ["ModelSettings", "SettingsError", "SkinOptics", "TableSettings", "load_model_settings"]
+
+PAPER_RENDER_WAVELENGTHS_NM = [400.0 + 35.0 * i for i in range(8)]
+
+
+class SettingsError(ValueError):
+    """A settings file or value that cannot be used; the message names the key and the problem."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+
+class SkinOptics(_Strict):
+    """Fixed optical properties of the two-layer skin model (PHYSICS.md §1; DWRR08 §5.1)."""
+
+    epidermis_thickness_mm: float = Field(0.25, gt=0, description="Epidermis thickness (DWRR08 §5.1).")
+    n_epidermis: float = Field(1.40, gt=1, description="Refractive index of the epidermis.")
+    n_dermis: float = Field(1.38, gt=1, description="Refractive index of the dermis.")
+    n_above: float = Field(1.0, ge=1, description="Index of the medium above the skin (air = 1).")
+    scattering_mie_coeff: float = Field(14.74, description="σs' epidermis = a λ^b + c λ^d (Eq. 13): a, mm⁻¹.")
+    scattering_mie_exponent: float = Field(-0.22, description="Eq. 13: b.")
+    scattering_rayleigh_coeff: float = Field(2.2e11, description="Eq. 13: c, mm⁻¹.")
+    scattering_rayleigh_exponent: float = Field(-4.0, description="Eq. 13: d.")
+    dermis_scattering_ratio: float = Field(0.5, gt=0, description="σs' dermis over σs' epidermis (DWRR08 §5.1).")
+    oxygenation_epidermis: float = Field(0.7, ge=0, le=1, description="γ_e, oxygenated fraction of epidermal blood.")
+    oxygenation_dermis: float = Field(0.7, ge=0, le=1, description="γ_d, oxygenated fraction of dermal blood.")
+    hemoglobin_g_per_l: float = Field(150.0, gt=0, description="Hemoglobin in whole blood (Prahl).")
+    hemoglobin_g_per_mol: float = Field(64500.0, gt=0, description="Molar mass of hemoglobin (Prahl).")
+    carotene_reference_mol_per_l: float = Field(
+        150.0 / 64500.0,
+        gt=0,
+        description=(
+            "Molar concentration of β-carotene in the medium whose volume fraction C_bc is. DWRR08 does "
+            "not state it; this default gives the carotene medium the molar density of hemoglobin in "
+            "whole blood (2.33 mM), so C_bc and C_he are fractions of equally concentrated pigment media "
+            "on the same 0–0.05 range (see docs/model.md for the check against Table 2)."
+        ),
+    )
+    eumelanin_coeff: float = Field(6.6e10, description="σa_em = a λ^b mm⁻¹ (Jacques; 6.6e11 in cm⁻¹).")
+    eumelanin_exponent: float = Field(-3.33, description="σa_em exponent b.")
+    pheomelanin_coeff: float = Field(2.9e14, description="σa_pm = a λ^b mm⁻¹ (Jacques; 2.9e15 in cm⁻¹).")
+    pheomelanin_exponent: float = Field(-4.75, description="σa_pm exponent b.")
+    baseline_offset: float = Field(0.0244, description="σa_base = a + b exp(-(λ - c)/w) mm⁻¹: a.")
+    baseline_amplitude: float = Field(8.53, description="σa_base: b, mm⁻¹.")
+    baseline_center_nm: float = Field(154.0, description="σa_base: c, nm.")
+    baseline_width_nm: float = Field(66.2, gt=0, description="σa_base: w, nm.")
+    interface_melanin_fraction: float = Field(
+        0.175, ge=0, description="Interface absorbance as a fraction of epidermal melanin absorption (DWRR08 §5.1)."
+    )
+    source_depth: Literal["mean_free_path", "capped"] = Field(
+        "mean_free_path",
+        description=(
+            "Depth of the multipole's point source: one transport mean free path (the paper), or capped "
+            "at half the layer thickness (a renderer-port hack; see docs/model.md for both against transport)."
+        ),
+    )
+
+
+class TableSettings(_Strict):
+    """Sum-of-Gaussians fits and σa lookup tables (PHYSICS.md §3; DWRR08 §4.3, §4.5)."""
+
+    n_gaussians: int = Field(
+        21,
+        ge=2,
+        le=40,
+        description=(
+            "Gaussians per profile. The paper's 18 (std 0.01 mm · √2^k) extended down by three so that "
+            "the darkest epidermis (σa ≈ 80 /mm at 400 nm) still fits within 2%; Gaussians under half a "
+            "pixel merge into the identity at render time, so the extension costs nothing there."
+        ),
+    )
+    gaussian_std_min_mm: float = Field(
+        0.01 / (2.0 * math.sqrt(2.0)), gt=0, description="Standard deviation of the narrowest Gaussian (mm)."
+    )
+    sigma_a_min_per_mm: float = Field(0.01, gt=0, description="Lowest tabulated σa (mm⁻¹).")
+    sigma_a_max_per_mm: float = Field(200.0, gt=0, description="Highest tabulated σa (mm⁻¹).")
+    n_sigma_a: int = Field(256, ge=8, description="Log-spaced σa samples per table (DWRR08: 256).")
+    multipole_tolerance: float = Field(1e-8, gt=0, lt=1e-2, description="Energy of dipole pairs left out.")
+    fit_r_min_mm: float = Field(2e-4, gt=0, description="Innermost radius of the least-squares fit grid (mm).")
+    fit_r_max_mm: float = Field(80.0, gt=0, description="Outermost radius of the fit grid (mm).")
+    fit_r_samples: int = Field(300, ge=50, description="Log-spaced radii in the fit grid.")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "TableSettings":
+        if self.sigma_a_max_per_mm <= self.sigma_a_min_per_mm:
+            raise ValueError("sigma_a_max_per_mm must exceed sigma_a_min_per_mm")
+        if self.fit_r_max_mm <= self.fit_r_min_mm:
+            raise ValueError("fit_r_max_mm must exceed fit_r_min_mm")
+        return self
+
+    def gaussian_variances_mm2(self) -> list[float]:
+        """v_k = v_0 2^k, so that G(v_{k+1}) = G(v_k) ∗ G(v_k)."""
+        v0 = self.gaussian_std_min_mm**2
+        return [v0 * 2.0**k for k in range(self.n_gaussians)]
+
+
+class ModelSettings(_Strict):
+    """Everything that shapes the model's output; saved beside results so they can be re-made."""
+
+    optics: SkinOptics = SkinOptics()
+    tables: TableSettings = TableSettings()
+    render_wavelengths_nm: list[float] = Field(
+        default_factory=lambda: list(PAPER_RENDER_WAVELENGTHS_NM),
+        description="Wavelengths rendered for colour images (DWRR08 §8: 400, 435, …, 645 nm).",
+    )
+    illuminant: str = Field("D65", description="CIE illuminant for colour (any name colour-science knows).")
+
+    @field_validator("render_wavelengths_nm")
+    @classmethod
+    def _wavelengths(cls, value: list[float]) -> list[float]:
+        if not value:
+            raise ValueError("at least one wavelength is needed")
+        if any(not (380.0 <= w <= 800.0) for w in value):
+            raise ValueError("wavelengths must lie within 380–800 nm")
+        return value
+
+    def digest(self, *parts: object) -> str:
+        """A short stable hash of these settings and any extra parts (used as a cache key)."""
+        blob = json.dumps([self.model_dump(mode="json"), *parts], sort_keys=True, default=str)
+        return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def load_model_settings(path: str | Path | None = None) -> ModelSettings:
+    """Embedded defaults, overridden by a YAML file if one is given.
+
+    Raises ``SettingsError`` naming the file, the key and the problem.
+    """
+    if path is None:
+        return ModelSettings()
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except OSError as exc:
+        raise SettingsError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except yaml.YAMLError as exc:
+        raise SettingsError(f"{path}: not valid YAML ({exc})") from None
+    if not isinstance(data, dict):
+        raise SettingsError(f"{path}: expected a mapping of settings at the top level")
+    try:
+        return ModelSettings.model_validate(data)
+    except ValidationError as exc:
+        raise SettingsError(f"{path}: {format_validation_error(exc)}") from None
+
+
+def format_validation_error(exc: ValidationError) -> str:
+    """One line per problem: ``key.path: message (got value)``."""
+    lines = []
+    for err in exc.errors():
+        key = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        got = err.get("input")
+        lines.append(f"{key}: {msg}" + (f" (got {got!r})" if err["type"] != "extra_forbidden" and not isinstance(got, dict) else ""))
+    return "; ".join(lines)

@@ -1,0 +1,240 @@
+"""σa lookup tables of Gaussian weights per layer, wavelength and profile (DWRR08 §4.5).
+
+Scattering is fixed per layer and wavelength, so a profile's Gaussian weights depend on σa alone.
+For each layer and wavelength the tables hold ``n_sigma_a`` log-spaced σa samples × K weights:
+the epidermis's R⁺, T⁺, R⁻, T⁻ (slab, multipole) and the dermis's R⁺ (semi-infinite, dipole).
+Lookups interpolate linearly in log σa and are differentiable with respect to σa.
+
+Tables are a cache of the profile model: they are written to disk under a key over every setting
+that shapes them (scattering, indices, thickness, source depth, the Gaussian basis, the σa grid,
+the fit grid, the wavelengths and this module's version) and rebuilt when the key differs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import tempfile
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from .gaussians import fit_gaussian_weights, plane_quadrature
+from .profiles import dipole_profile, dipole_total, multipole_profiles, multipole_totals
+from .settings import ModelSettings
+from .spectra import chromophore_spectra
+
+__all__ = [
+    "EPIDERMIS_PROFILES",
+    "ProfileTables",
+    "build_profile_tables",
+    "default_cache_dir",
+    "load_profile_tables",
+    "table_key",
+]
+
+TABLE_FORMAT_VERSION = 1
+EPIDERMIS_PROFILES = ("R_plus", "T_plus", "R_minus", "T_minus")
+DERMIS_PROFILES = ("R_plus",)
+
+Progress = Callable[[int, int], None]
+
+
+def default_cache_dir() -> Path:
+    """``$SKINLAYERS_CACHE`` if set, else ``$XDG_CACHE_HOME/skinlayers`` (``~/.cache/skinlayers``)."""
+    if os.environ.get("SKINLAYERS_CACHE"):
+        return Path(os.environ["SKINLAYERS_CACHE"])
+    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
+    return base / "skinlayers"
+
+
+def table_key(settings: ModelSettings, wavelength_nm: torch.Tensor) -> dict:
+    """Every setting that shapes the tables, as a JSON-able dict."""
+    o = settings.optics
+    shaping = {
+        k: getattr(o, k)
+        for k in (
+            "epidermis_thickness_mm",
+            "n_epidermis",
+            "n_dermis",
+            "n_above",
+            "scattering_mie_coeff",
+            "scattering_mie_exponent",
+            "scattering_rayleigh_coeff",
+            "scattering_rayleigh_exponent",
+            "dermis_scattering_ratio",
+            "source_depth",
+        )
+    }
+    return {
+        "version": TABLE_FORMAT_VERSION,
+        "optics": shaping,
+        "tables": settings.tables.model_dump(mode="json"),
+        "wavelength_nm": [round(float(w), 6) for w in torch.as_tensor(wavelength_nm).reshape(-1)],
+    }
+
+
+def _digest(key: dict) -> str:
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:24]
+
+
+@dataclass(frozen=True)
+class ProfileTables:
+    """Gaussian weights: ``epidermis`` ``(L, 4, S, K)`` (R⁺, T⁺, R⁻, T⁻), ``dermis`` ``(L, 1, S, K)``."""
+
+    wavelength_nm: torch.Tensor
+    sigma_a_per_mm: torch.Tensor
+    variances_mm2: torch.Tensor
+    epidermis: torch.Tensor
+    dermis: torch.Tensor
+    key: dict
+
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "ProfileTables":
+        cast = lambda t: t.to(device=device, dtype=dtype)  # noqa: E731
+        return ProfileTables(
+            self.wavelength_nm.to(device=device),
+            cast(self.sigma_a_per_mm),
+            cast(self.variances_mm2),
+            cast(self.epidermis),
+            cast(self.dermis),
+            self.key,
+        )
+
+    def lookup(self, layer: str, profile: str, sigma_a_per_mm: torch.Tensor) -> torch.Tensor:
+        """Gaussian weights ``(..., L, K)`` for σa ``(..., L)`` (last axis: this table's wavelengths).
+
+        Linear interpolation in log σa; values outside the tabulated range take the end sample.
+        """
+        table = self._table(layer, profile)
+        sa = torch.as_tensor(sigma_a_per_mm)
+        if sa.shape[-1:] != table.shape[:1]:
+            raise ValueError(f"sigma_a must end in the tables' {table.shape[0]} wavelengths, got shape {tuple(sa.shape)}")
+        grid = self.sigma_a_per_mm.to(sa)
+        log_lo, log_hi = math.log(float(grid[0])), math.log(float(grid[-1]))
+        step = (log_hi - log_lo) / (grid.numel() - 1)
+        t = (torch.log(sa.clamp(float(grid[0]), float(grid[-1]))) - log_lo) / step
+        i0 = torch.clamp(t.detach().floor().long(), 0, grid.numel() - 2)
+        frac = (t - i0.to(t)).unsqueeze(-1)
+        table = table.to(sa)
+        wl = torch.arange(table.shape[0], device=sa.device).expand_as(i0)
+        w0 = table[wl, i0]
+        w1 = table[wl, i0 + 1]
+        return w0 + frac * (w1 - w0)
+
+    def _table(self, layer: str, profile: str) -> torch.Tensor:
+        if layer == "epidermis":
+            names, data = EPIDERMIS_PROFILES, self.epidermis
+        elif layer == "dermis":
+            names, data = DERMIS_PROFILES, self.dermis
+        else:
+            raise ValueError(f"layer must be 'epidermis' or 'dermis', got {layer!r}")
+        if profile not in names:
+            raise ValueError(f"the {layer} has profiles {names}, not {profile!r}")
+        return data[:, names.index(profile)]
+
+    def totals(self, layer: str, profile: str, sigma_a_per_mm: torch.Tensor) -> torch.Tensor:
+        """Plane integral of the tabulated profile, Σ_k w_k, ``(..., L)``."""
+        return self.lookup(layer, profile, sigma_a_per_mm).sum(-1)
+
+    def out_of_range(self, sigma_a_per_mm: torch.Tensor) -> torch.Tensor:
+        """Boolean mask of σa values outside the tabulated range (they are clamped on lookup)."""
+        return (sigma_a_per_mm < self.sigma_a_per_mm[0]) | (sigma_a_per_mm > self.sigma_a_per_mm[-1])
+
+
+def build_profile_tables(
+    wavelength_nm: torch.Tensor, settings: ModelSettings | None = None, progress: Progress | None = None
+) -> ProfileTables:
+    """Fit the Gaussian weights of every profile at every tabulated σa and wavelength (float64)."""
+    settings = settings or ModelSettings()
+    opt, tab = settings.optics, settings.tables
+    spectra = chromophore_spectra(wavelength_nm, opt)
+    sigma_a = torch.logspace(
+        math.log10(tab.sigma_a_min_per_mm), math.log10(tab.sigma_a_max_per_mm), tab.n_sigma_a, dtype=torch.float64
+    )
+    variances = np.array(tab.gaussian_variances_mm2())
+    r, q = plane_quadrature(tab.fit_r_min_mm, tab.fit_r_max_mm, tab.fit_r_samples)
+    r_t = torch.from_numpy(r)
+    n_wl = spectra.wavelength_nm.numel()
+    epi = np.zeros((n_wl, len(EPIDERMIS_PROFILES), tab.n_sigma_a, tab.n_gaussians))
+    derm = np.zeros((n_wl, len(DERMIS_PROFILES), tab.n_sigma_a, tab.n_gaussians))
+    eta_top, eta_mid = opt.n_epidermis / opt.n_above, opt.n_epidermis / opt.n_dermis
+    eta_derm = opt.n_dermis / opt.n_epidermis
+    for j in range(n_wl):
+        s_epi = spectra.scattering_epidermis[j]
+        prof = multipole_profiles(
+            r_t, sigma_a, s_epi, opt.epidermis_thickness_mm, eta_top, eta_mid,
+            tol=tab.multipole_tolerance, source_depth=opt.source_depth,
+        )
+        tot = multipole_totals(sigma_a, s_epi, opt.epidermis_thickness_mm, eta_top, eta_mid, source_depth=opt.source_depth)
+        for p in range(len(EPIDERMIS_PROFILES)):
+            epi[j, p] = fit_gaussian_weights(prof[p].numpy(), tot[p].numpy(), variances, r, q)
+        s_derm = spectra.scattering_dermis[j]
+        derm[j, 0] = fit_gaussian_weights(
+            dipole_profile(r_t, sigma_a, s_derm, eta_derm).numpy(),
+            dipole_total(sigma_a, s_derm, eta_derm).numpy(),
+            variances, r, q,
+        )
+        if progress is not None:
+            progress(j + 1, n_wl)
+    return ProfileTables(
+        wavelength_nm=spectra.wavelength_nm,
+        sigma_a_per_mm=sigma_a,
+        variances_mm2=torch.from_numpy(variances),
+        epidermis=torch.from_numpy(epi),
+        dermis=torch.from_numpy(derm),
+        key=table_key(settings, spectra.wavelength_nm),
+    )
+
+
+def load_profile_tables(
+    wavelength_nm: torch.Tensor,
+    settings: ModelSettings | None = None,
+    cache_dir: Path | str | None = None,
+    progress: Progress | None = None,
+    rebuild: bool = False,
+) -> ProfileTables:
+    """Tables for these wavelengths and settings from the disk cache, built and stored if missing or stale."""
+    settings = settings or ModelSettings()
+    wavelength_nm = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
+    key = table_key(settings, wavelength_nm)
+    folder = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    path = folder / f"profile-tables-{_digest(key)}.pt"
+    if path.exists() and not rebuild:
+        try:
+            stored = torch.load(path, map_location="cpu", weights_only=True)
+            if json.loads(stored["key"]) == key:
+                return ProfileTables(
+                    stored["wavelength_nm"], stored["sigma_a_per_mm"], stored["variances_mm2"],
+                    stored["epidermis"], stored["dermis"], key,
+                )
+        except (OSError, RuntimeError, KeyError, ValueError, EOFError):
+            warnings.warn(f"profile table cache {path} is unreadable; rebuilding it", stacklevel=2)
+    tables = build_profile_tables(wavelength_nm, settings, progress)
+    _save(tables, path)
+    return tables
+
+
+def _save(tables: ProfileTables, path: Path) -> None:
+    """Write atomically: a reader never sees a half-written cache file."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        payload = {
+            "key": json.dumps(tables.key, sort_keys=True),
+            "wavelength_nm": tables.wavelength_nm,
+            "sigma_a_per_mm": tables.sigma_a_per_mm,
+            "variances_mm2": tables.variances_mm2,
+            "epidermis": tables.epidermis,
+            "dermis": tables.dermis,
+        }
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".pt")
+        os.close(fd)
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    except OSError as exc:
+        warnings.warn(f"could not cache profile tables in {path.parent}: {exc}", stacklevel=3)

@@ -1,0 +1,26 @@
+"""skinlayers: multi-spectral skin acquisition and inverse rendering with a layered, heterogeneous,
+spectral skin model (Donner, Weyrich, d'Eon, Ramamoorthi, Rusinkiewicz 2008).
+
+The public API re-exports what each part offers; the command line is ``skinlayers`` (``cli.py``).
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from .model import TABLE2, ColourConverter, ModelSettings, SkinModel, SkinParams, load_model_settings
+from .reconstruct import fit_spectra
+
+try:
+    __version__ = version("skinlayers")
+except PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "0+unknown"
+
+__all__ = [
+    "TABLE2",
+    "ColourConverter",
+    "ModelSettings",
+    "SkinModel",
+    "SkinParams",
+    "__version__",
+    "fit_spectra",
+    "load_model_settings",
+]
