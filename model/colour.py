@@ -2,8 +2,10 @@
 
 The tristimulus integral is linear in the reflectance, so for a fixed set of sample wavelengths it is
 a ``(3, L)`` matrix: built once per wavelength set from colour-science's observer and illuminant data
-by pushing unit spectra through colour-science's own interpolation (Sprague for uniform samples,
-cubic spline otherwise; constant extrapolation) onto its 1 nm grid. Everything after is tensor maths,
+by pushing unit spectra through colour-science's linear interpolator (constant extrapolation) onto
+its 1 nm grid. Linear, not Sprague or spline: with the paper's 8 render samples 35 nm apart, the
+smooth interpolators overshoot between samples and double the colour error against 151 samples
+(measured: ΔE2000 worst 1.05 with Sprague, 0.85 linear, over the Table 2 skins under D65). Everything after is tensor maths,
 batched and differentiable, on any device.
 
 XYZ is normalised so that the perfect white under the illuminant has Y = 1; sRGB is reached by
@@ -52,6 +54,12 @@ class ColourConverter:
             raise ValueError(f"unknown illuminant {illuminant!r}; try D65, D50, A, E or F2")
         self.wavelength_nm = torch.from_numpy(w)
         self.illuminant = illuminant
+        with warnings.catch_warnings():
+            # colour-science warns about aligning shapes and non-uniform samples: both are intended here
+            warnings.simplefilter("ignore")
+            self._build(colour, w, illuminant)
+
+    def _build(self, colour, w: np.ndarray, illuminant: str) -> None:
         shape = colour.SpectralShape(360, 830, 1)
         cmfs = colour.MSDS_CMFS[OBSERVER].copy().align(shape).values  # (471, 3)
         light = colour.SDS_ILLUMINANTS[illuminant].copy().align(shape).values  # (471,)
@@ -61,8 +69,8 @@ class ColourConverter:
         for j in range(w.size):
             unit = np.zeros(w.size)
             unit[j] = 1.0
-            sd = colour.SpectralDistribution(unit, w)
-            resample[:, j] = sd.align(shape).values
+            sd = colour.SpectralDistribution(unit, w, interpolator=colour.LinearInterpolator)
+            resample[:, j] = sd.align(shape, interpolator=colour.LinearInterpolator).values
         self.matrix = torch.from_numpy(weights.T @ resample)  # (3, L)
         self.white_xyz = torch.from_numpy(weights.sum(0))
         rgb = colour.RGB_COLOURSPACES["sRGB"]

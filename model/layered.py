@@ -126,14 +126,16 @@ class SkinModel:
             r2 = derm.R_plus
         else:
             tab = self.tables(wavelength_nm).to(ab.epidermis.device, ab.epidermis.dtype)
-            look = lambda layer, p, sa: tab.lookup(layer, p, sa)  # noqa: E731
             if k_per_mm is None:
-                value = lambda w: w.sum(-1)  # noqa: E731
+                value = tab.totals
             else:
                 k = torch.as_tensor(k_per_mm).to(ab.epidermis)
-                value = lambda w: gaussian_sum_hankel(w, tab.variances_mm2, k)  # noqa: E731
-            epi = [value(look("epidermis", p, ab.epidermis)) for p in ("R_plus", "T_plus", "R_minus", "T_minus")]
-            r2 = value(look("dermis", "R_plus", ab.dermis))
+
+                def value(layer, profile, sa):
+                    return gaussian_sum_hankel(tab.lookup(layer, profile, sa), tab.variances_mm2, k)
+
+            epi = [value("epidermis", p, ab.epidermis) for p in ("R_plus", "T_plus", "R_minus", "T_minus")]
+            r2 = value("dermis", "R_plus", ab.dermis)
         if k_per_mm is not None:
             attenuation = attenuation[..., None]
         return LayerTransforms(epi[0], epi[1], epi[2], epi[3], r2, attenuation)

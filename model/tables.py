@@ -111,20 +111,27 @@ class ProfileTables:
 
         Linear interpolation in log σa; values outside the tabulated range take the end sample.
         """
-        table = self._table(layer, profile)
+        return self._interpolate(self._table(layer, profile), sigma_a_per_mm)
+
+    def totals(self, layer: str, profile: str, sigma_a_per_mm: torch.Tensor) -> torch.Tensor:
+        """Plane integral of the tabulated profile, Σ_k w_k, ``(..., L)`` (interpolated like the weights)."""
+        return self._interpolate(self._table(layer, profile).sum(-1, keepdim=True), sigma_a_per_mm)[..., 0]
+
+    def _interpolate(self, table: torch.Tensor, sigma_a_per_mm: torch.Tensor) -> torch.Tensor:
         sa = torch.as_tensor(sigma_a_per_mm)
         if sa.shape[-1:] != table.shape[:1]:
             raise ValueError(f"sigma_a must end in the tables' {table.shape[0]} wavelengths, got shape {tuple(sa.shape)}")
-        grid = self.sigma_a_per_mm.to(sa)
+        grid = self.sigma_a_per_mm
+        n = grid.numel()
         log_lo, log_hi = math.log(float(grid[0])), math.log(float(grid[-1]))
-        step = (log_hi - log_lo) / (grid.numel() - 1)
+        step = (log_hi - log_lo) / (n - 1)
         t = (torch.log(sa.clamp(float(grid[0]), float(grid[-1]))) - log_lo) / step
-        i0 = torch.clamp(t.detach().floor().long(), 0, grid.numel() - 2)
+        i0 = torch.clamp(t.detach().floor().long(), 0, n - 2)
         frac = (t - i0.to(t)).unsqueeze(-1)
-        table = table.to(sa)
-        wl = torch.arange(table.shape[0], device=sa.device).expand_as(i0)
-        w0 = table[wl, i0]
-        w1 = table[wl, i0 + 1]
+        flat = table.to(sa).reshape(-1, table.shape[-1])
+        index = (torch.arange(table.shape[0], device=sa.device) * n + i0).reshape(-1)
+        w0 = flat.index_select(0, index).reshape(*i0.shape, -1)
+        w1 = flat.index_select(0, index + 1).reshape(*i0.shape, -1)
         return w0 + frac * (w1 - w0)
 
     def _table(self, layer: str, profile: str) -> torch.Tensor:
@@ -137,10 +144,6 @@ class ProfileTables:
         if profile not in names:
             raise ValueError(f"the {layer} has profiles {names}, not {profile!r}")
         return data[:, names.index(profile)]
-
-    def totals(self, layer: str, profile: str, sigma_a_per_mm: torch.Tensor) -> torch.Tensor:
-        """Plane integral of the tabulated profile, Σ_k w_k, ``(..., L)``."""
-        return self.lookup(layer, profile, sigma_a_per_mm).sum(-1)
 
     def out_of_range(self, sigma_a_per_mm: torch.Tensor) -> torch.Tensor:
         """Boolean mask of σa values outside the tabulated range (they are clamped on lookup)."""

@@ -1,0 +1,246 @@
+"""Commands the model contributes to ``skinlayers``: spectrum, skin-types, tables."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Optional
+
+import torch
+import typer
+import yaml
+
+from .colour import ColourConverter, ita_degrees
+from .layered import SkinModel
+from .params import PARAMETER_NAMES, TABLE2, SkinParams
+from .settings import ModelSettings, load_model_settings
+
+__all__ = ["COLOUR_WAVELENGTHS_NM", "parse_wavelengths", "register"]
+
+#: Colour is always computed from the model's spectrum at these wavelengths, whatever is printed.
+COLOUR_WAVELENGTHS_NM = torch.arange(380.0, 782.0, 2.0, dtype=torch.float64)
+DEFAULT_PRESET = "III interior"
+
+
+def parse_wavelengths(text: str) -> torch.Tensor:
+    """``start:stop:step`` (nm, stop included) or a comma list, e.g. ``400:700:5`` or ``450,550,650``."""
+    text = text.strip()
+    try:
+        if ":" in text:
+            parts = [float(p) for p in text.split(":")]
+            if len(parts) != 3:
+                raise ValueError
+            start, stop, step = parts
+            if step <= 0 or stop < start:
+                raise ValueError
+            n = int(math.floor((stop - start) / step + 1e-9)) + 1
+            values = [start + i * step for i in range(n)]
+        else:
+            values = [float(p) for p in text.split(",") if p.strip()]
+    except ValueError:
+        raise ValueError(
+            f"--wavelengths {text!r}: expected start:stop:step (stop included, step > 0) or a comma list in nm"
+        ) from None
+    if not values:
+        raise ValueError("--wavelengths: no wavelengths given")
+    if any(not math.isfinite(v) for v in values):
+        raise ValueError("--wavelengths: values must be finite numbers")
+    if sorted(set(values)) != values:
+        raise ValueError("--wavelengths: values must increase")
+    return torch.tensor(values, dtype=torch.float64)
+
+
+def _params_from(preset: str, params_file: Optional[Path], overrides: dict[str, Optional[float]]) -> SkinParams:
+    if preset not in TABLE2:
+        raise ValueError(f"--preset {preset!r}: unknown; choose one of: {', '.join(TABLE2)}")
+    values: dict[str, object] = dict(TABLE2[preset])
+    if params_file is not None:
+        try:
+            loaded = yaml.safe_load(Path(params_file).read_text())
+        except OSError as exc:
+            raise ValueError(f"{params_file}: cannot read ({exc.strerror or exc})") from None
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{params_file}: not valid YAML/JSON ({exc})") from None
+        if not isinstance(loaded, dict):
+            raise ValueError(f"{params_file}: expected a mapping of parameter names to values")
+        unknown = sorted(set(loaded) - set(PARAMETER_NAMES))
+        if unknown:
+            raise ValueError(f"{params_file}: unknown key(s) {', '.join(unknown)} (expected {', '.join(PARAMETER_NAMES)})")
+        for k, v in loaded.items():
+            if not isinstance(v, (int, float)) or isinstance(v, bool):
+                raise ValueError(f"{params_file}: {k} must be a number, got {v!r}")
+        values.update(loaded)
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    return SkinParams.from_mapping(values).validate()
+
+
+def _spectrum_report(model: SkinModel, params: SkinParams, wavelengths: torch.Tensor, method: str, illuminant: str) -> dict:
+    refl = model.diffuse_reflectance(params, wavelengths, method=method)
+    colour = ColourConverter(COLOUR_WAVELENGTHS_NM, illuminant)
+    dense = model.diffuse_reflectance(params, COLOUR_WAVELENGTHS_NM, method="exact")
+    lab = colour.lab(dense)
+    return {
+        "wavelength_nm": [round(float(w), 6) for w in wavelengths],
+        "reflectance": [float(r) for r in refl],
+        "srgb": [float(c) for c in colour.srgb(dense)],
+        "lab": [float(c) for c in lab],
+        "ita_deg": float(ita_degrees(lab)),
+        "params": {n: float(getattr(params, n)) for n in PARAMETER_NAMES},
+        "illuminant": illuminant,
+        "method": method,
+    }
+
+
+def _hex(rgb) -> str:
+    return "#" + "".join(f"{int(round(255 * min(max(c, 0.0), 1.0))):02x}" for c in rgb)
+
+
+def spectrum(
+    C_m: Optional[float] = typer.Option(None, "--C_m", help="Melanin volume fraction (0–0.5)."),
+    beta_m: Optional[float] = typer.Option(None, "--beta_m", help="Eumelanin share of the melanin (0–1)."),
+    C_he: Optional[float] = typer.Option(None, "--C_he", help="Epidermal blood fraction (0–0.05)."),
+    C_bc: Optional[float] = typer.Option(None, "--C_bc", help="β-carotene fraction (0–0.05)."),
+    C_hd: Optional[float] = typer.Option(None, "--C_hd", help="Dermal blood fraction (0–0.1)."),
+    preset: str = typer.Option(DEFAULT_PRESET, "--preset", help="Table 2 row giving the parameters not set."),
+    params_file: Optional[Path] = typer.Option(None, "--params", help="YAML/JSON file of parameters."),
+    wavelengths: str = typer.Option("400:700:5", "--wavelengths", help="start:stop:step (nm, stop included) or a comma list."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="Write a figure of the spectrum and its colour."),
+    illuminant: str = typer.Option("D65", "--illuminant", help="CIE illuminant for sRGB and L*a*b*."),
+    method: str = typer.Option("exact", "--method", help="exact (closed-form profiles) or tables (Gaussian tables)."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Model settings YAML (configs/model.yaml)."),
+) -> None:
+    """Diffuse reflectance spectrum of homogeneous skin, with its sRGB and L*a*b* colour.
+
+    Example: skinlayers spectrum --C_m 0.02 --beta_m 0.5 --C_he 0.002 --C_bc 0.001 --C_hd 0.005 --json
+    """
+    settings = load_model_settings(config)
+    params = _params_from(preset, params_file, dict(C_m=C_m, beta_m=beta_m, C_he=C_he, C_bc=C_bc, C_hd=C_hd))
+    model = SkinModel(settings)
+    report = _spectrum_report(model, params, parse_wavelengths(wavelengths), method, illuminant)
+    if plot is not None:
+        _plot_spectra([("skin", report)], plot, title="Diffuse reflectance (normal incidence, specular excluded)")
+    if as_json:
+        typer.echo(json.dumps(report))
+        return
+    from rich.console import Console  # noqa: PLC0415
+    from rich.table import Table  # noqa: PLC0415
+
+    console = Console()
+    table = Table(title="Diffuse reflectance", show_header=True)
+    table.add_column("λ (nm)", justify="right")
+    table.add_column("R_d", justify="right")
+    for w, r in zip(report["wavelength_nm"], report["reflectance"]):
+        table.add_row(f"{w:g}", f"{r:.4f}")
+    console.print(table)
+    p = report["params"]
+    console.print("params: " + ", ".join(f"{k}={v:g}" for k, v in p.items()))
+    L, a, b = report["lab"]
+    console.print(
+        f"sRGB ({illuminant}): {_hex(report['srgb'])} = ({', '.join(f'{c:.3f}' for c in report['srgb'])});"
+        f" L*a*b* = ({L:.1f}, {a:.1f}, {b:.1f}); ITA = {report['ita_deg']:.1f}°"
+    )
+    if plot is not None:
+        console.print(f"figure: {plot}")
+
+
+def skin_types(
+    plot: Optional[Path] = typer.Option(None, "--plot", help="Write the figure of spectra and colours (PNG)."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
+    illuminant: str = typer.Option("D65", "--illuminant", help="CIE illuminant for sRGB and L*a*b*."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Model settings YAML."),
+) -> None:
+    """The paper's Table 2 skin types: spectra, sRGB, L*a*b* and ITA°, lighter to darker.
+
+    Example: skinlayers skin-types --plot skin_types.png
+    """
+    settings = load_model_settings(config)
+    model = SkinModel(settings)
+    wl = parse_wavelengths("400:700:5")
+    rows = [(name, _spectrum_report(model, SkinParams.from_mapping(p), wl, "exact", illuminant)) for name, p in TABLE2.items()]
+    if plot is not None:
+        _plot_spectra(rows, plot, title="DWRR08 Table 2 skin types (lower arm), homogeneous model")
+    if as_json:
+        typer.echo(json.dumps({"skin_types": [{"name": n, **r} for n, r in rows]}))
+        return
+    from rich.console import Console  # noqa: PLC0415
+    from rich.table import Table  # noqa: PLC0415
+
+    table = Table(title=f"Table 2 skin types ({illuminant})")
+    for col in ("type", "sRGB", "L*", "a*", "b*", "ITA°", "R(450)", "R(550)", "R(650)"):
+        table.add_column(col, justify="right")
+    for name, r in rows:
+        refl = dict(zip(r["wavelength_nm"], r["reflectance"]))
+        hexcode = _hex(r["srgb"])
+        table.add_row(
+            name, f"[on {hexcode}]      [/] {hexcode}", *(f"{v:.1f}" for v in r["lab"]), f"{r['ita_deg']:.1f}",
+            *(f"{refl[w]:.3f}" for w in (450.0, 550.0, 650.0)),
+        )
+    Console().print(table)
+    if plot is not None:
+        typer.echo(f"figure: {plot}")
+
+
+def tables(
+    wavelengths: Optional[str] = typer.Option(None, "--wavelengths", help="Default: the render wavelengths of the settings."),
+    rebuild: bool = typer.Option(False, "--rebuild", help="Rebuild even if a cached copy exists."),
+    config: Optional[Path] = typer.Option(None, "--config", help="Model settings YAML."),
+) -> None:
+    """Build (or find in the cache) the Gaussian lookup tables for a set of wavelengths.
+
+    Example: skinlayers tables --wavelengths 400:700:10
+    """
+    from rich.progress import Progress  # noqa: PLC0415
+
+    from .tables import default_cache_dir, load_profile_tables  # noqa: PLC0415
+
+    settings: ModelSettings = load_model_settings(config)
+    wl = parse_wavelengths(wavelengths) if wavelengths else torch.tensor(settings.render_wavelengths_nm, dtype=torch.float64)
+    start = time.perf_counter()
+    with Progress(transient=True) as bar:
+        task = bar.add_task("fitting Gaussians", total=wl.numel())
+        load_profile_tables(wl, settings, rebuild=rebuild, progress=lambda done, total: bar.update(task, completed=done))
+    typer.echo(
+        f"tables for {wl.numel()} wavelengths ready in {time.perf_counter() - start:.1f} s "
+        f"({settings.tables.n_gaussians} Gaussians × {settings.tables.n_sigma_a} σa; cache {default_cache_dir()})"
+    )
+
+
+def _plot_spectra(rows: list[tuple[str, dict]], path: Path, title: str) -> None:
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    fig, (ax, sw) = plt.subplots(1, 2, figsize=(10, 4.6), gridspec_kw={"width_ratios": [3, 1]})
+    for i, (name, r) in enumerate(rows):
+        rgb = [min(max(c, 0.0), 1.0) for c in r["srgb"]]
+        ax.plot(r["wavelength_nm"], r["reflectance"], color=rgb, lw=2.2, label=name)
+        sw.add_patch(plt.Rectangle((0, len(rows) - 1 - i), 1, 0.9, color=rgb))
+        sw.text(1.08, len(rows) - 1 - i + 0.45, f"{name}  ITA {r['ita_deg']:.0f}°", va="center", fontsize=8)
+    ax.set_xlabel("wavelength (nm)")
+    ax.set_ylabel("diffuse reflectance")
+    ax.set_ylim(0, None)
+    ax.grid(alpha=0.3)
+    ax.set_facecolor("#f4f4f4")
+    if len(rows) > 1:
+        ax.legend(fontsize=7, ncol=2)
+    ax.set_title(title, fontsize=10)
+    sw.set_xlim(0, 2.6)
+    sw.set_ylim(0, len(rows))
+    sw.axis("off")
+    sw.set_title("sRGB (" + rows[0][1]["illuminant"] + ")", fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    if path.parent and not path.parent.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("spectrum")(spectrum)
+    app.command("skin-types")(skin_types)
+    app.command("tables")(tables)

@@ -1,0 +1,149 @@
+"""Benchmarks of the homogeneous model (run on demand: ``pytest -m bench tests/bench -s``).
+
+Writes CSV and PNG figures to ``bench_results/`` (override with ``SKINLAYERS_BENCH_DIR``):
+
+- ``tables_build.csv``: time to build the Gaussian tables from scratch for sets of wavelengths;
+- ``fit_spectrum.csv``: one batched ``fit_spectra`` over the 100 NIST forearm spectra;
+- ``colour_bands.csv`` / ``colour_bands.png``: colour error against 151 samples versus the number of
+  render wavelengths, with the time per spectrum — accuracy charted against speed;
+- ``forward.csv``: time of the batched forward model (exact closed form versus Gaussian tables).
+
+Times are medians of repeats measured side by side in one run; the machine is shared and noisy, so
+read ratios, not absolute numbers.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import statistics
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from skinlayers.model import PARAMETER_NAMES, TABLE2, ColourConverter, ModelSettings, SkinModel, SkinParams
+from skinlayers.model.colour import delta_e_2000
+from skinlayers.model.tables import build_profile_tables
+from skinlayers.reconstruct import fit_spectra
+from skinlayers.reconstruct.spectra_io import read_spectra_csv
+
+pytestmark = pytest.mark.bench
+
+NIST = Path(__file__).resolve().parents[1] / "data" / "nist_skin_reflectance_forearm_avg_370-830nm.csv"
+
+
+def out_dir() -> Path:
+    d = Path(os.environ.get("SKINLAYERS_BENCH_DIR", "bench_results"))
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def write_csv(name: str, rows: list[dict]) -> Path:
+    path = out_dir() / name
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    print(f"\n{path}:")
+    for r in rows:
+        print("  " + ", ".join(f"{k}={v}" for k, v in r.items()))
+    return path
+
+
+def timed(fn, repeats: int = 3) -> float:
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def test_tables_build_time():
+    settings = ModelSettings()
+    sets = {
+        "render (8)": torch.tensor(settings.render_wavelengths_nm, dtype=torch.float64),
+        "400-700 every 10 nm (31)": torch.arange(400.0, 701.0, 10.0, dtype=torch.float64),
+        "400-700 every 2 nm (151)": torch.arange(400.0, 701.0, 2.0, dtype=torch.float64),
+    }
+    rows = []
+    for name, wl in sets.items():
+        seconds = timed(lambda: build_profile_tables(wl, settings), repeats=1)
+        rows.append({"wavelengths": name, "count": wl.numel(), "seconds": round(seconds, 2),
+                     "seconds_per_wavelength": round(seconds / wl.numel(), 3),
+                     "gaussians": settings.tables.n_gaussians, "sigma_a_samples": settings.tables.n_sigma_a})
+    write_csv("tables_build.csv", rows)
+
+
+def test_fit_spectrum_nist():
+    data = read_spectra_csv(NIST).select(400, 700)
+    fit_spectra(data.reflectance[:2], data.wavelength_nm)  # warm-up (forward-mode kernels)
+    rows = []
+    for kw in ({}, {"free_scale": True}, {"specular_included": True}):
+        result = {}
+
+        def run():
+            result["fit"] = fit_spectra(data.reflectance, data.wavelength_nm, **kw)
+
+        seconds = timed(run)
+        f = result["fit"]
+        rows.append({"options": "+".join(kw) or "default", "spectra": 100, "samples": data.wavelength_nm.numel(),
+                     "seconds": round(seconds, 3), "iterations": f.iterations,
+                     "median_rms": round(float(f.rms_residual.median()), 5),
+                     "worst_rms": round(float(f.rms_residual.max()), 5),
+                     "median_scale": round(float(f.scale.median()), 4)})
+    write_csv("fit_spectrum.csv", rows)
+
+
+def test_colour_error_versus_bands():
+    """ΔE2000 of Table 2 skins against 151 samples (400–700 every 2 nm) for n render bands."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    model = SkinModel()
+    params = SkinParams.from_mapping({n: [TABLE2[r][n] for r in TABLE2] for n in PARAMETER_NAMES})
+    ref_wl = torch.arange(400.0, 701.0, 2.0, dtype=torch.float64)
+    ref = ColourConverter(ref_wl).lab(model.diffuse_reflectance(params, ref_wl))
+    many = SkinParams.from_tensor(params.as_tensor().repeat(1000, 1))
+    rows = []
+    for n in (3, 4, 5, 6, 8, 10, 12, 16, 31, 61):
+        wl = torch.tensor(ModelSettings().render_wavelengths_nm, dtype=torch.float64) if n == 8 else torch.linspace(
+            400.0, 700.0, n, dtype=torch.float64)
+        de = delta_e_2000(ColourConverter(wl).lab(model.diffuse_reflectance(params, wl)), ref)
+        seconds = timed(lambda: model.diffuse_reflectance(many, wl), repeats=5)
+        rows.append({"bands": n, "spacing": "paper 400:645:35" if n == 8 else "400:700 even",
+                     "max_dE2000": round(float(de.max()), 3), "mean_dE2000": round(float(de.mean()), 3),
+                     "us_per_spectrum": round(seconds / many.C_m.numel() * 1e6, 3)})
+    write_csv("colour_bands.csv", rows)
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    ax.plot([r["us_per_spectrum"] for r in rows], [r["max_dE2000"] for r in rows], "o-")
+    for r in rows:
+        ax.annotate(str(r["bands"]), (r["us_per_spectrum"], r["max_dE2000"]), textcoords="offset points", xytext=(4, 4))
+    ax.axhline(1.0, color="0.6", ls="--", lw=1)
+    ax.set_xlabel("time per spectrum (µs, CPU, exact totals)")
+    ax.set_ylabel("worst ΔE2000 vs 151 samples (Table 2)")
+    ax.set_yscale("log")
+    ax.set_title("Colour accuracy against cost: render bands", fontsize=10)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out_dir() / "colour_bands.png", dpi=120)
+    plt.close(fig)
+
+
+def test_forward_time(tmp_path):
+    model = SkinModel(cache_dir=str(tmp_path))
+    wl = torch.tensor(ModelSettings().render_wavelengths_nm, dtype=torch.float64)
+    model.tables(wl)
+    g = torch.Generator().manual_seed(0)
+    rows = []
+    for batch in (100, 10_000, 65_536):
+        x = torch.rand(batch, 5, generator=g, dtype=torch.float64) * torch.tensor([0.1, 1, 0.01, 0.01, 0.02], dtype=torch.float64)
+        p = SkinParams.from_tensor(x)
+        for method in ("exact", "tables"):
+            seconds = timed(lambda: model.diffuse_reflectance(p, wl, method=method), repeats=3)
+            rows.append({"batch": batch, "bands": wl.numel(), "method": method, "ms": round(seconds * 1e3, 2)})
+    write_csv("forward.csv", rows)

@@ -1,0 +1,138 @@
+"""fit_spectra: recovery on simulated spectra (judged against the Cramér–Rao bound) and the residual
+distribution on the 100 NIST forearm spectra."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from skinlayers.model import PARAMETER_BOUNDS, PARAMETER_NAMES, SkinModel, SkinParams
+from skinlayers.reconstruct import fit_spectra
+from skinlayers.reconstruct.spectra_io import SpectraFileError, read_spectra_csv
+
+NIST = Path(__file__).resolve().parents[1] / "data" / "nist_skin_reflectance_forearm_avg_370-830nm.csv"
+NOISE = 0.003
+
+
+def simulate(params: torch.Tensor, wl: torch.Tensor, seed: int) -> torch.Tensor:
+    """Measured spectra at higher fidelity than the fit: the model every 1 nm seen through a 3 nm
+    (FWHM) triangular band-pass at each sample, plus Gaussian noise of 0.003 reflectance."""
+    model = SkinModel()
+    fine = torch.arange(float(wl[0]) - 2, float(wl[-1]) + 3, 1.0, dtype=torch.float64)
+    r = model.diffuse_reflectance(SkinParams.from_tensor(params), fine)
+    w = torch.tensor([1.0, 2.0, 3.0, 2.0, 1.0], dtype=torch.float64) / 9.0
+    idx = (wl - fine[0]).long()
+    banded = sum(w[j] * r[:, idx + j - 2] for j in range(5))
+    g = torch.Generator().manual_seed(seed)
+    return banded + NOISE * torch.randn(banded.shape, generator=g, dtype=torch.float64)
+
+
+def crlb_std(params: torch.Tensor, wl: torch.Tensor) -> torch.Tensor:
+    """Cramér–Rao standard deviation of each parameter for white noise of σ = NOISE, ``(B, 5)``."""
+    model = SkinModel()
+    rows = []
+    for p in params:
+        jac = torch.autograd.functional.jacobian(lambda x: model.diffuse_reflectance(SkinParams.from_tensor(x), wl), p)
+        fisher = jac.T @ jac / NOISE**2
+        rows.append(torch.sqrt(torch.diagonal(torch.linalg.inv(fisher))))
+    return torch.stack(rows)
+
+
+def test_recovers_what_the_data_identify():
+    """The fit finds a residual no worse than the truth's on every spectrum; every parameter the data
+    identify (Cramér–Rao relative standard deviation under 25%) lies within 4 standard deviations of
+    the truth; melanin comes back within 10%.
+
+    Weakly identified parameters (dermal blood under much melanin has a Cramér–Rao spread of over
+    100%) may legitimately wander along the valley to a bound with a lower residual than the truth.
+    """
+    g = torch.Generator().manual_seed(7)
+    lo = torch.tensor([0.002, 0.05, 0.0005, 0.0002, 0.002], dtype=torch.float64)
+    hi = torch.tensor([0.2, 0.95, 0.02, 0.01, 0.04], dtype=torch.float64)
+    truth = lo + (hi - lo) * torch.rand(30, 5, generator=g, dtype=torch.float64)
+    wl = torch.arange(400.0, 701.0, 3.0, dtype=torch.float64)
+    measured = simulate(truth, wl, seed=11)
+    fit = fit_spectra(measured, wl)
+    est = fit.params.as_tensor()
+    truth_rms = torch.sqrt(((SkinModel().diffuse_reflectance(SkinParams.from_tensor(truth), wl) - measured) ** 2).mean(-1))
+    assert bool((fit.rms_residual <= truth_rms * (1 + 1e-6)).all())
+    std = crlb_std(truth, wl)
+    identified = std / truth < 0.25
+    z = (est - truth).abs() / std
+    assert int(identified.sum()) > 60, "the test must exercise enough identifiable parameters"
+    for j, name in enumerate(PARAMETER_NAMES):
+        if identified[:, j].any():
+            assert float(z[:, j][identified[:, j]].max()) < 4.0, (name, z[:, j])
+    rel_cm = (est[:, 0] - truth[:, 0]).abs() / truth[:, 0]
+    assert float(rel_cm.max()) < 0.10
+    assert float(fit.rms_residual.median()) == pytest.approx(NOISE, rel=0.15)
+    assert bool(fit.converged.all())
+
+
+def test_estimates_stay_in_bounds_and_report_bounds():
+    """A spectrum the model cannot reach pins parameters at bounds, and says so."""
+    wl = torch.arange(400.0, 701.0, 10.0, dtype=torch.float64)
+    white = torch.full((1, wl.numel()), 0.95, dtype=torch.float64)
+    fit = fit_spectra(white, wl)
+    p = fit.params.as_tensor()[0]
+    for j, name in enumerate(PARAMETER_NAMES):
+        lo, hi = PARAMETER_BOUNDS[name]
+        assert lo <= float(p[j]) <= hi
+    assert {"C_m", "C_he", "C_hd"} <= set(fit.at_bound[0])
+
+
+def test_nist_forearm_residuals():
+    """The 100 NIST forearm spectra (400–700 nm): the residual distribution, reported honestly.
+
+    Measured: RMS residual median 0.0227, worst 0.0460 with no free scale; with one free scale per
+    spectrum median 0.0067, worst 0.0161, scale median 1.30 (the paper reached < 0.03 on its patches).
+    These bounds guard against regressions of the model or the fit.
+    """
+    data = read_spectra_csv(NIST).select(400, 700)
+    assert data.reflectance.shape == (100, 101)
+    fit = fit_spectra(data.reflectance, data.wavelength_nm)
+    rms = fit.rms_residual
+    print(f"\nNIST: median {float(rms.median()):.4f} worst {float(rms.max()):.4f}")
+    assert float(rms.median()) < 0.025 and float(rms.max()) < 0.05
+    scaled = fit_spectra(data.reflectance, data.wavelength_nm, free_scale=True)
+    print(f"NIST, free scale: median {float(scaled.rms_residual.median()):.4f} "
+          f"worst {float(scaled.rms_residual.max()):.4f} scale median {float(scaled.scale.median()):.3f}")
+    assert float(scaled.rms_residual.median()) < 0.008
+    assert 1.2 < float(scaled.scale.median()) < 1.4
+
+
+def test_bad_measurements():
+    wl = torch.arange(400.0, 701.0, 10.0, dtype=torch.float64)
+    with pytest.raises(ValueError, match="NaN"):
+        fit_spectra(torch.full((1, wl.numel()), float("nan"), dtype=torch.float64), wl)
+    with pytest.raises(ValueError, match="\\(B, L\\)"):
+        fit_spectra(torch.ones(wl.numel(), dtype=torch.float64), wl)
+
+
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("wavelength_nm,a\n400,0.3\n410,abc\n", "line 3, column 'a': 'abc' is not a number"),
+        ("wavelength_nm,a\n400,0.3\n410,nan\n", "line 3, column 'a': nan (NaN or infinite)"),
+        ("wavelength_nm,a,b\n400,0.3\n", "line 2: 2 columns, the header has 3"),
+        ("wavelength_nm,a\n410,0.3\n400,0.3\n", "must increase"),
+        ("wavelength_nm,a\n400,30\n410,31\n", "fraction 0–1"),
+        ("only a header\n", "header row and at least one data row"),
+    ],
+)
+def test_malformed_csv(tmp_path, text, needle):
+    f = tmp_path / "s.csv"
+    f.write_text(text)
+    with pytest.raises(SpectraFileError) as err:
+        read_spectra_csv(f)
+    assert needle in str(err.value)
+
+
+def test_csv_comments_and_names(tmp_path):
+    f = tmp_path / "s.csv"
+    f.write_text("# a comment\nwavelength_nm,left arm,right arm\n400,0.2,0.3\n500,0.25,0.35\n")
+    d = read_spectra_csv(f)
+    assert d.names == ["left arm", "right arm"]
+    torch.testing.assert_close(d.reflectance, torch.tensor([[0.2, 0.25], [0.3, 0.35]], dtype=torch.float64))

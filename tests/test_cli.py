@@ -1,0 +1,113 @@
+"""The ``skinlayers`` command: outputs, and one clear line with a non-zero exit for bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from skinlayers.cli import main
+
+NIST = Path(__file__).resolve().parent / "data" / "nist_skin_reflectance_forearm_avg_370-830nm.csv"
+
+
+def run(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
+    monkeypatch.setattr(sys, "argv", ["skinlayers", *args])
+    code = 0
+    try:
+        main()
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_spectrum_json(monkeypatch, capsys):
+    code, out, _ = run(monkeypatch, capsys, "spectrum", "--C_m", "0.02", "--beta_m", "0.5", "--C_he", "0.002",
+                       "--C_bc", "0.001", "--C_hd", "0.005", "--wavelengths", "400:700:50", "--json")
+    assert code == 0
+    report = json.loads(out)
+    assert report["wavelength_nm"] == [400, 450, 500, 550, 600, 650, 700]
+    assert len(report["reflectance"]) == 7 and all(0 < r < 1 for r in report["reflectance"])
+    assert len(report["srgb"]) == 3 and len(report["lab"]) == 3
+    assert report["params"] == {"C_m": 0.02, "beta_m": 0.5, "C_he": 0.002, "C_bc": 0.001, "C_hd": 0.005}
+
+
+def test_spectrum_comma_list_and_plot(monkeypatch, capsys, tmp_path):
+    png = tmp_path / "s.png"
+    code, out, _ = run(monkeypatch, capsys, "spectrum", "--wavelengths", "450, 550,650", "--plot", str(png))
+    assert code == 0 and png.stat().st_size > 10_000
+    assert "sRGB" in out and "650" in out
+
+
+def test_skin_types_figure(monkeypatch, capsys, tmp_path):
+    png = tmp_path / "types.png"
+    code, out, _ = run(monkeypatch, capsys, "skin-types", "--plot", str(png), "--json")
+    assert code == 0 and png.exists()
+    rows = json.loads(out)["skin_types"]
+    assert [r["name"] for r in rows][0] == "I interior" and len(rows) == 9
+
+
+def test_fit_spectrum_json(monkeypatch, capsys, tmp_path):
+    lines = NIST.read_text().splitlines()
+    small = tmp_path / "three.csv"
+    small.write_text("\n".join(",".join(line.split(",")[:4]) for line in lines if not line.startswith("#")) + "\n")
+    code, out, _ = run(monkeypatch, capsys, "fit-spectrum", str(small), "--json")
+    assert code == 0
+    report = json.loads(out)
+    assert [s["name"] for s in report["spectra"]] == ["subject_1", "subject_2", "subject_3"]
+    for s in report["spectra"]:
+        assert set(s["params"]) == {"C_m", "beta_m", "C_he", "C_bc", "C_hd"}
+        assert 0 < s["rms_residual"] < 0.06
+        assert isinstance(s["at_bound"], list)
+    assert report["summary"]["samples"] == 101
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["spectrum", "--C_m", "-0.1"], "C_m must be >= 0"),
+        (["spectrum", "--C_m", "0.6", "--C_he", "0.3", "--C_bc", "0.2"], "C_m + C_he + C_bc must be <= 1"),
+        (["spectrum", "--C_hd", "nan"], "C_hd must be a finite number"),
+        (["spectrum", "--wavelengths", "700:400:5"], "--wavelengths"),
+        (["spectrum", "--wavelengths", "300:500:10"], "380–800 nm"),
+        (["spectrum", "--preset", "VII"], "--preset"),
+        (["spectrum", "--illuminant", "D99"], "illuminant"),
+        (["fit-spectrum", "/nonexistent/file.csv"], "cannot read"),
+        (["fit-spectrum", str(NIST), "--range", "300:900"], "--range"),
+    ],
+)
+def test_bad_input_one_clear_line(monkeypatch, capsys, args, needle):
+    code, out, err = run(monkeypatch, capsys, *args)
+    assert code != 0
+    assert needle in err
+    assert err.startswith("error: ") and err.count("\n") == 1
+    assert "Traceback" not in err + out
+
+
+def test_bad_files_one_clear_line(monkeypatch, capsys, tmp_path):
+    params = tmp_path / "p.yaml"
+    params.write_text("C_m: 0.01\nmelanin: 0.2\n")
+    code, _, err = run(monkeypatch, capsys, "spectrum", "--params", str(params))
+    assert code == 1 and "unknown key(s) melanin" in err
+    config = tmp_path / "c.yaml"
+    config.write_text("optics:\n  n_epidermis: 1.4\n  colour: red\n")
+    code, _, err = run(monkeypatch, capsys, "spectrum", "--config", str(config))
+    assert code == 1 and "optics.colour: unknown key" in err
+    csv = tmp_path / "bad.csv"
+    csv.write_text("wavelength_nm,a\n400,0.3\n410,NaN\n")
+    code, _, err = run(monkeypatch, capsys, "fit-spectrum", str(csv))
+    assert code == 1 and "NaN" in err and "line 3" in err and err.count("\n") == 1
+
+
+def test_console_script_runs(tmp_path):
+    """The installed package in a fresh interpreter (outside the source tree): help works, bad input exits 1."""
+    ok = subprocess.run([sys.executable, "-m", "skinlayers", "--help"], capture_output=True, text=True, timeout=120,
+                        cwd=tmp_path)
+    assert ok.returncode == 0 and "fit-spectrum" in ok.stdout
+    bad = subprocess.run([sys.executable, "-m", "skinlayers", "spectrum", "--beta_m", "2"],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert bad.returncode == 1 and "beta_m must be <= 1" in bad.stderr and "Traceback" not in bad.stderr
