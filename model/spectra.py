@@ -104,7 +104,7 @@ def chromophore_spectra(wavelength_nm: torch.Tensor, optics: SkinOptics | None =
     - scattering: Eq. 13 in the epidermis, half of it in the dermis.
     """
     optics = optics or SkinOptics()
-    w = check_wavelengths(wavelength_nm)
+    w = check_wavelengths(wavelength_nm).cpu()  # tables live on the CPU; callers move the result
     hb = _table("hemoglobin_molar_extinction.csv")
     car = _table("beta_carotene_molar_extinction.csv")
     molar_hb = optics.hemoglobin_g_per_l / optics.hemoglobin_g_per_mol

@@ -80,16 +80,17 @@ def fit_spectra(
     if not bool(torch.isfinite(y).all()):
         raise ValueError("measured spectra contain NaN or infinite values")
     wl = torch.as_tensor(wavelength_nm, dtype=torch.float64)
+    dev = y.device
     starts = starts or (PAPER_START, *_EXTRA_STARTS)
     n_spec, n_start = y.shape[0], len(starts)
     lo, hi = _bounds(y.dtype, y.device)
-    p0 = torch.tensor([[s[n] for n in PARAMETER_NAMES] for s in starts], dtype=y.dtype)
+    p0 = torch.tensor([[s[n] for n in PARAMETER_NAMES] for s in starts], dtype=y.dtype, device=dev)
     x = ((p0 - lo) / (hi - lo)).repeat(n_spec, 1)  # (B*S, 5) in [0, 1], spectrum-major
     n_free = 5
     if free_scale:
-        x = torch.cat([x, torch.zeros(x.shape[0], 1, dtype=x.dtype)], dim=1)
-    box_lo = torch.zeros(x.shape[1], dtype=x.dtype)
-    box_hi = torch.ones(x.shape[1], dtype=x.dtype)
+        x = torch.cat([x, torch.zeros(x.shape[0], 1, dtype=x.dtype, device=dev)], dim=1)
+    box_lo = torch.zeros(x.shape[1], dtype=x.dtype, device=dev)
+    box_hi = torch.ones(x.shape[1], dtype=x.dtype, device=dev)
     if free_scale:  # log scale, unbounded in practice
         box_lo[5], box_hi[5] = -3.0, 3.0
     target = y.repeat_interleave(n_start, dim=0)
@@ -118,7 +119,7 @@ def fit_spectra(
     # Projected Levenberg–Marquardt on the box: a variable resting on a bound with the gradient
     # pushing outward is held there (its row and column replaced by the identity). Only problems not
     # yet converged are evaluated.
-    damping = torch.full((x.shape[0],), 1e-3, dtype=x.dtype)
+    damping = torch.full((x.shape[0],), 1e-3, dtype=x.dtype, device=dev)
     res, jac = residual_and_jacobian(x, target)
     cost = (res**2).sum(-1)
     converged = torch.zeros_like(cost, dtype=torch.bool)
@@ -153,12 +154,12 @@ def fit_spectra(
     # keep the best start of every spectrum
     cost = cost.reshape(n_spec, n_start)
     best = cost.argmin(dim=1)
-    pick = torch.arange(n_spec) * n_start + best
+    pick = torch.arange(n_spec, device=dev) * n_start + best
     x_best = x[pick]
     p = lo + (hi - lo) * x_best[:, :5]
     fitted = predict(x_best)
     rms = torch.sqrt(((fitted - y) ** 2).mean(-1))
-    scale = torch.exp(x_best[:, 5]) if free_scale else torch.ones(n_spec, dtype=y.dtype)
+    scale = torch.exp(x_best[:, 5]) if free_scale else torch.ones(n_spec, dtype=y.dtype, device=dev)
     margin = AT_BOUND_FRACTION * (hi - lo)
     at_bound = [
         [n for j, n in enumerate(PARAMETER_NAMES) if p[b, j] <= lo[j] + margin[j] or p[b, j] >= hi[j] - margin[j]]

@@ -136,3 +136,11 @@ def test_csv_comments_and_names(tmp_path):
     d = read_spectra_csv(f)
     assert d.names == ["left arm", "right arm"]
     torch.testing.assert_close(d.reflectance, torch.tensor([[0.2, 0.25], [0.3, 0.35]], dtype=torch.float64))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_fit_on_cuda_matches_cpu():
+    data = read_spectra_csv(NIST).select(400, 700)
+    cpu = fit_spectra(data.reflectance[:8], data.wavelength_nm)
+    gpu = fit_spectra(data.reflectance[:8].cuda(), data.wavelength_nm)
+    torch.testing.assert_close(gpu.rms_residual.cpu(), cpu.rms_residual, rtol=1e-6, atol=1e-9)
