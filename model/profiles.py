@@ -130,6 +130,8 @@ def dipole_profile(
 def dipole_total(sigma_a_per_mm: torch.Tensor, sigma_s_prime_per_mm: torch.Tensor, eta: float) -> torch.Tensor:
     """Closed-form plane integral of the dipole: R_d = (α'/2)(1 + e^{-(4/3)A sqrt(3(1-α'))}) e^{-sqrt(3(1-α'))}."""
     sigma_a, sigma_s = torch.broadcast_tensors(torch.as_tensor(sigma_a_per_mm), torch.as_tensor(sigma_s_prime_per_mm))
+    if bool((sigma_a < 0).any()) or bool((sigma_s <= 0).any()):
+        raise ValueError("sigma_a must be >= 0 and sigma_s_prime > 0 (mm^-1)")
     albedo = sigma_s / (sigma_a + sigma_s)
     root = torch.sqrt(3.0 * (1.0 - albedo))
     a = extrapolation_factor(eta).to(albedo)

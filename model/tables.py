@@ -109,32 +109,53 @@ class ProfileTables:
     def lookup(self, layer: str, profile: str, sigma_a_per_mm: torch.Tensor) -> torch.Tensor:
         """Gaussian weights ``(..., L, K)`` for σa ``(..., L)`` (last axis: this table's wavelengths).
 
-        Linear interpolation in log σa; values outside the tabulated range take the end sample.
+        Between samples the weights' *shape* (weights over their sum) is interpolated linearly in
+        log σa and their *sum* log-linearly: transmittances fall exponentially with σa (a factor of
+        two between neighbouring samples for the darkest epidermis), which linear interpolation of
+        the weights themselves would miss by up to a quarter. Values outside the range take the end
+        sample.
         """
-        return self._interpolate(self._table(layer, profile), sigma_a_per_mm)
+        shape, log_total = self.normalized(layer, profile)
+        t, i0 = self._position(sigma_a_per_mm, shape.shape[0])
+        total = torch.exp(self._lerp(log_total[..., None], t, i0))[..., 0]
+        return total[..., None] * self._lerp(shape, t, i0)
 
     def totals(self, layer: str, profile: str, sigma_a_per_mm: torch.Tensor) -> torch.Tensor:
-        """Plane integral of the tabulated profile, Σ_k w_k, ``(..., L)`` (interpolated like the weights)."""
-        return self._interpolate(self._table(layer, profile).sum(-1, keepdim=True), sigma_a_per_mm)[..., 0]
+        """Plane integral of the tabulated profile, Σ_k w_k, ``(..., L)`` (log-linear in log σa)."""
+        _, log_total = self.normalized(layer, profile)
+        t, i0 = self._position(sigma_a_per_mm, log_total.shape[0])
+        return torch.exp(self._lerp(log_total[..., None], t, i0))[..., 0]
 
-    def _interpolate(self, table: torch.Tensor, sigma_a_per_mm: torch.Tensor) -> torch.Tensor:
+    def normalized(self, layer: str, profile: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(L, S, K)`` weights over their sum, and ``(L, S)`` log of the sum (floored at 1e-300)."""
+        weights = self.table(layer, profile)
+        total = weights.sum(-1).clamp_min(1e-300)
+        return weights / total[..., None], torch.log(total)
+
+    def _position(self, sigma_a_per_mm: torch.Tensor, n_bands: int) -> tuple[torch.Tensor, torch.Tensor]:
         sa = torch.as_tensor(sigma_a_per_mm)
-        if sa.shape[-1:] != table.shape[:1]:
-            raise ValueError(f"sigma_a must end in the tables' {table.shape[0]} wavelengths, got shape {tuple(sa.shape)}")
+        if sa.shape[-1:] != (n_bands,):
+            raise ValueError(f"sigma_a must end in the tables' {n_bands} wavelengths, got shape {tuple(sa.shape)}")
         grid = self.sigma_a_per_mm
-        n = grid.numel()
         log_lo, log_hi = math.log(float(grid[0])), math.log(float(grid[-1]))
-        step = (log_hi - log_lo) / (n - 1)
+        step = (log_hi - log_lo) / (grid.numel() - 1)
         t = (torch.log(sa.clamp(float(grid[0]), float(grid[-1]))) - log_lo) / step
-        i0 = torch.clamp(t.detach().floor().long(), 0, n - 2)
+        i0 = torch.clamp(t.detach().floor().long(), 0, grid.numel() - 2)
+        return t, i0
+
+    @staticmethod
+    def _lerp(table: torch.Tensor, t: torch.Tensor, i0: torch.Tensor) -> torch.Tensor:
+        """``table`` ``(L, S, K)`` at fractional sample positions ``t`` ``(..., L)`` → ``(..., L, K)``."""
+        n = table.shape[1]
         frac = (t - i0.to(t)).unsqueeze(-1)
-        flat = table.to(sa).reshape(-1, table.shape[-1])
-        index = (torch.arange(table.shape[0], device=sa.device) * n + i0).reshape(-1)
+        flat = table.to(t).reshape(-1, table.shape[-1])
+        index = (torch.arange(table.shape[0], device=t.device) * n + i0).reshape(-1)
         w0 = flat.index_select(0, index).reshape(*i0.shape, -1)
         w1 = flat.index_select(0, index + 1).reshape(*i0.shape, -1)
         return w0 + frac * (w1 - w0)
 
-    def _table(self, layer: str, profile: str) -> torch.Tensor:
+    def table(self, layer: str, profile: str) -> torch.Tensor:
+        """The weights of one profile, ``(L, S, K)``."""
         if layer == "epidermis":
             names, data = EPIDERMIS_PROFILES, self.epidermis
         elif layer == "dermis":
@@ -216,7 +237,7 @@ def load_profile_tables(
                     stored["wavelength_nm"], stored["sigma_a_per_mm"], stored["variances_mm2"],
                     stored["epidermis"], stored["dermis"], key,
                 )
-        except (OSError, RuntimeError, KeyError, ValueError, EOFError):
+        except Exception:  # noqa: BLE001 (any unreadable cache file is rebuilt, never trusted)
             warnings.warn(f"profile table cache {path} is unreadable; rebuilding it", stacklevel=2)
     tables = build_profile_tables(wavelength_nm, settings, progress)
     _save(tables, path)
