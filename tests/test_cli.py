@@ -111,3 +111,45 @@ def test_console_script_runs(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "skinlayers", "spectrum", "--beta_m", "2"],
                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert bad.returncode == 1 and "beta_m must be <= 1" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_render_writes_spectral_exr_and_png(monkeypatch, capsys, tmp_path):
+    maps = tmp_path / "maps.exr"
+    code, _, _ = run(monkeypatch, capsys, "example-maps", str(maps), "--size", "24", "--mm-per-pixel", "0.1")
+    assert code == 0
+    code, out, err = run(monkeypatch, capsys, "render", str(maps), "--light", "window:1.6", "--bands", "450,550,650",
+                         "--edit", "blood*1.5", "-o", str(tmp_path / "out" / "r"), "--device", "cpu")
+    assert code == 0, err
+    from skinlayers.model.maps_io import read_spectral
+
+    image, wl, header = read_spectral(tmp_path / "out" / "r.exr")
+    assert image.shape == (3, 24, 24) and wl.tolist() == [450.0, 550.0, 650.0]
+    assert float(image[:, 12, 12].min()) > 0.05 and float(image[:, 0, 0].max()) < float(image[:, 12, 12].min())
+    assert (tmp_path / "out" / "r.png").stat().st_size > 500
+    assert "rendered 24×24 px at 3 bands" in out
+
+
+@pytest.mark.parametrize(
+    "extra, needle",
+    [
+        (["--light", "laser"], "--light 'laser'"),
+        (["--edit", "blood+2"], "NAME*FACTOR"),
+        (["--swap", "blood"], "NAME=FILE.exr"),
+        (["--device", "tpu"], "--device"),
+    ],
+)
+def test_render_bad_options(monkeypatch, capsys, tmp_path, extra, needle):
+    maps = tmp_path / "maps.exr"
+    run(monkeypatch, capsys, "example-maps", str(maps), "--size", "8", "--mm-per-pixel", "0.1")
+    code, _, err = run(monkeypatch, capsys, "render", str(maps), "-o", str(tmp_path / "x"), *extra)
+    assert code == 1 and needle in err and err.count("\n") == 1
+
+
+def test_render_refuses_a_bad_maps_file(monkeypatch, capsys, tmp_path):
+    import numpy as np
+
+    from skinlayers.model.maps_io import write_exr
+
+    bad = write_exr(tmp_path / "bad.exr", {"C_m": np.zeros((4, 4), np.float32)}, {"mm_per_pixel": 0.1})
+    code, _, err = run(monkeypatch, capsys, "render", str(bad), "-o", str(tmp_path / "x"))
+    assert code == 1 and "missing channel(s) beta_m, C_he, C_bc, C_hd" in err and "Traceback" not in err
