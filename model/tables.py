@@ -36,6 +36,8 @@ __all__ = [
     "build_profile_tables",
     "default_cache_dir",
     "load_profile_tables",
+    "load_thin_dermis_tables",
+    "SlabTables",
     "table_key",
 ]
 
@@ -262,3 +264,79 @@ def _save(tables: ProfileTables, path: Path) -> None:
         os.replace(tmp, path)
     except OSError as exc:
         warnings.warn(f"could not cache profile tables in {path.parent}: {exc}", stacklevel=3)
+
+
+@dataclass(frozen=True)
+class SlabTables:
+    """Tables of a thin dermis slab between two epidermis layers (thin geometry, DWRR08 §4.4):
+    ``weights`` ``(L, 4, S, K)`` for R⁺, T⁺, R⁻, T⁻ of a dermis of ``thickness_mm``."""
+
+    wavelength_nm: torch.Tensor
+    sigma_a_per_mm: torch.Tensor
+    variances_mm2: torch.Tensor
+    weights: torch.Tensor
+    thickness_mm: float
+    key: dict
+
+    def to(self, device=None, dtype=None) -> "SlabTables":
+        cast = lambda t: t.to(device=device, dtype=dtype)  # noqa: E731
+        return SlabTables(self.wavelength_nm.to(device=device), cast(self.sigma_a_per_mm), cast(self.variances_mm2),
+                          cast(self.weights), self.thickness_mm, self.key)
+
+    def table(self, layer: str, profile: str) -> torch.Tensor:
+        if layer != "thin_dermis" or profile not in EPIDERMIS_PROFILES:
+            raise ValueError(f"a thin dermis has profiles {EPIDERMIS_PROFILES}, not {layer} {profile}")
+        return self.weights[:, EPIDERMIS_PROFILES.index(profile)]
+
+    def normalized(self, layer: str, profile: str) -> tuple[torch.Tensor, torch.Tensor]:
+        weights = self.table(layer, profile)
+        total = weights.sum(-1).clamp_min(1e-300)
+        return weights / total[..., None], torch.log(total)
+
+
+def load_thin_dermis_tables(
+    wavelength_nm: torch.Tensor, thickness_mm: float, settings: ModelSettings | None = None,
+    cache_dir: Path | str | None = None,
+) -> SlabTables:
+    """Tables of a dermis slab of ``thickness_mm`` bounded by epidermis on both sides, cached like the others."""
+    settings = settings or ModelSettings()
+    if not thickness_mm > 0:
+        raise ValueError(f"thin dermis thickness must be > 0 mm, got {thickness_mm}")
+    wl = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
+    key = {**table_key(settings, wl), "thin_dermis_mm": round(float(thickness_mm), 9)}
+    folder = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    path = folder / f"thin-dermis-tables-{_digest(key)}.pt"
+    if path.exists():
+        try:
+            stored = torch.load(path, map_location="cpu", weights_only=True)
+            if json.loads(stored["key"]) == key:
+                return SlabTables(stored["wavelength_nm"], stored["sigma_a_per_mm"], stored["variances_mm2"],
+                                  stored["weights"], float(thickness_mm), key)
+        except Exception:  # noqa: BLE001
+            warnings.warn(f"thin-dermis table cache {path} is unreadable; rebuilding it", stacklevel=2)
+    opt, tab = settings.optics, settings.tables
+    spectra = chromophore_spectra(wl, opt)
+    sigma_a = torch.logspace(math.log10(tab.sigma_a_min_per_mm), math.log10(tab.sigma_a_max_per_mm), tab.n_sigma_a,
+                             dtype=torch.float64)
+    variances = np.array(tab.gaussian_variances_mm2())
+    r, q = plane_quadrature(tab.fit_r_min_mm, tab.fit_r_max_mm, tab.fit_r_samples)
+    eta = opt.n_dermis / opt.n_epidermis
+    weights = np.zeros((wl.numel(), 4, tab.n_sigma_a, tab.n_gaussians))
+    for j in range(wl.numel()):
+        s = spectra.scattering_dermis[j]
+        prof = multipole_profiles(torch.from_numpy(r), sigma_a, s, float(thickness_mm), eta, eta,
+                                  tol=tab.multipole_tolerance, source_depth="capped")
+        tot = multipole_totals(sigma_a, s, float(thickness_mm), eta, eta, source_depth="capped")
+        for p in range(4):
+            weights[j, p] = fit_gaussian_weights(prof[p].numpy(), tot[p].numpy(), variances, r, q)
+    tables = SlabTables(wl, sigma_a, torch.from_numpy(variances), torch.from_numpy(weights), float(thickness_mm), key)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".pt")
+        os.close(fd)
+        torch.save({"key": json.dumps(key, sort_keys=True), "wavelength_nm": wl, "sigma_a_per_mm": sigma_a,
+                    "variances_mm2": tables.variances_mm2, "weights": tables.weights}, tmp)
+        os.replace(tmp, path)
+    except OSError as exc:
+        warnings.warn(f"could not cache thin-dermis tables in {path.parent}: {exc}", stacklevel=2)
+    return tables
