@@ -24,7 +24,8 @@ def diffuse_fresnel_reflectance(eta: torch.Tensor | float) -> torch.Tensor:
     ``-1.440/eta^2 + 0.710/eta + 0.668 + 0.0636 eta`` for ``eta >= 1`` and
     ``-0.4399 + 0.7099/eta - 0.3319/eta^2 + 0.0636/eta^3`` for ``eta < 1``.
     """
-    eta = torch.as_tensor(eta, dtype=torch.get_default_dtype() if not torch.is_tensor(eta) else eta.dtype)
+    # Python numbers are taken in float64 (torch's default dtype would round A to float32)
+    eta = torch.as_tensor(eta, dtype=eta.dtype if torch.is_tensor(eta) else torch.float64)
     above = -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
     below = -0.4399 + 0.7099 / eta - 0.3319 / eta**2 + 0.0636 / eta**3
     return torch.where(eta >= 1.0, above, below)

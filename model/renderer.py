@@ -8,8 +8,8 @@ the gather operator 𝒢_P[f](x) = Σ_k w_k^P(x) (f ∗ G_k)(x) (profile of the 
 
 with A = exp(-P) the thin interface layer (17.5% of the epidermal melanin plus any user absorbance).
 Φ is the irradiance that entered (F_t(θ_i) E); the series stops when the light left in it falls below
-``series_tolerance``. All bands and batch items are blurred together; each gather is checkpointed
-so that the backward pass recomputes its blur stack instead of storing it.
+``series_tolerance``. All bands and batch items are blurred together; each gather's backward pass
+recomputes its blur stack instead of storing it (``gather.py``).
 
 Shapes: maps ``(B, H, W)``, output ``(B, L, H, W)``.
 """
@@ -21,16 +21,16 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from torch.utils.checkpoint import checkpoint
 
-from .blur import BlurPlan, blur_stack
+from .blur import BlurPlan
+from .gather import columns, gather, lookup, total
 from .illumination import Light
 from .layered import SkinModel
 from .maps import SkinMaps
 from .radiometry import entry_transmittance, exit_factor
 from .settings import ModelSettings
 from .specular import torrance_sparrow_factor
-from .tables import EPIDERMIS_PROFILES, ProfileTables
+from .tables import EPIDERMIS_PROFILES
 
 __all__ = ["RenderResult", "SkinRenderer"]
 
@@ -46,14 +46,6 @@ class RenderResult:
     wavelength_nm: torch.Tensor
     terms: list[int]
     mm_per_pixel: float
-
-
-@dataclass(frozen=True)
-class _Lookup:
-    """Per-pixel position in a layer's σa table: flat row ``index`` (band·S + i0) and ``frac``."""
-
-    index: torch.Tensor
-    frac: torch.Tensor
 
 
 class SkinRenderer:
@@ -101,27 +93,29 @@ class SkinRenderer:
             boundary="replicate" if light.extends else "zero",
             identity_below_px=rs.identity_below_px, pyramid_min_px=rs.pyramid_min_px,
         )
-        epi = _lookup(tables, sa_epi)
-        derm = _lookup(tables, sa_derm)
-        cols = {p: _columns(tables, "epidermis", p, plan) for p in EPIDERMIS_PROFILES}
-        cols["R2_plus"] = _columns(tables, "dermis", "R_plus", plan)
+        epi = lookup(tables.sigma_a_per_mm, sa_epi)
+        derm = lookup(tables.sigma_a_per_mm, sa_derm)
+        cols = {p: columns(tables, "epidermis", p, plan) for p in EPIDERMIS_PROFILES}
+        cols["R2_plus"] = columns(tables, "dermis", "R_plus", plan)
         terms = series_terms or self._series_terms(cols, epi, derm, attenuation, b, wl.numel())
 
         f_t = entry_transmittance(o.n_epidermis, o.n_above, math.cos(math.radians(light_angle_deg)))
         irradiance = light.irradiance(h, w, border, maps.mm_per_pixel, dtype, device)
         phi = (f_t * irradiance).expand(b, wl.numel(), *irradiance.shape[-2:]).reshape(b * wl.numel(), *irradiance.shape[-2:])
 
-        gather = self._gather_fn(plan, rs.checkpoint)
-        m, t1 = gather(phi, [(cols["R_plus"], epi), (cols["T_plus"], epi)])
+        def g(f, sets):
+            return gather(f, sets, plan, lean=rs.checkpoint)
+
+        m, t1 = g(phi, [(cols["R_plus"], epi), (cols["T_plus"], epi)])
         u = attenuation * t1
         for n in range(terms):
-            (r2,) = gather(u, [(cols["R2_plus"], derm)])
+            (r2,) = g(u, [(cols["R2_plus"], derm)])
             v = attenuation * r2
             if n + 1 < terms:
-                t_out, r1 = gather(v, [(cols["T_minus"], epi), (cols["R_minus"], epi)])
+                t_out, r1 = g(v, [(cols["T_minus"], epi), (cols["R_minus"], epi)])
                 u = attenuation * r1
             else:
-                (t_out,) = gather(v, [(cols["T_minus"], epi)])
+                (t_out,) = g(v, [(cols["T_minus"], epi)])
             m = m + t_out
         exitance = m.reshape(b, wl.numel(), *m.shape[-2:])
         if crop and border:
@@ -143,31 +137,11 @@ class SkinRenderer:
         """Terms until the geometric tail (A² R₁⁻ R₂⁺ per bounce, worst pixel) holds < tolerance."""
         rs = self.settings.render
         with torch.no_grad():
-            r1m = _total(cols["R_minus"], epi)
-            r2p = _total(cols["R2_plus"], derm)
+            r1m = total(cols["R_minus"], epi)
+            r2p = total(cols["R2_plus"], derm)
             ratio = float((attenuation**2 * r1m * r2p).max().clamp(1e-12, 0.999))
         n = math.ceil(math.log(rs.series_tolerance * (1.0 - ratio)) / math.log(ratio))
         return int(min(max(n, 1), rs.max_series_terms))
-
-    @staticmethod
-    def _gather_fn(plan: BlurPlan, use_checkpoint: bool):
-        def run(f: torch.Tensor, sets: list[tuple[torch.Tensor, _Lookup]]) -> list[torch.Tensor]:
-            def body(f_in: torch.Tensor, *fracs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-                lookups = [_Lookup(lk.index, fr) for (_, lk), fr in zip(sets, fracs)]
-                outs = [_lerp(c.shape[:, 0], lk) * f_in for (c, _), lk in zip(sets, lookups)]
-                for j, blurred in enumerate(blur_stack(f_in, plan)):
-                    for i, ((c, _), lk) in enumerate(zip(sets, lookups)):
-                        outs[i] = outs[i] + _lerp(c.shape[:, j + 1], lk) * blurred
-                # the profile's total multiplies its shape (log-linear between σa samples)
-                return tuple(_total(c, lk) * out for ((c, _), lk), out in zip(zip(sets, lookups), outs))
-
-            fracs = [lk.frac for _, lk in sets]
-            needs_grad = torch.is_grad_enabled() and (f.requires_grad or any(fr.requires_grad for fr in fracs))
-            if use_checkpoint and needs_grad:
-                return list(checkpoint(body, f, *fracs, use_reentrant=False))
-            return list(body(f, *fracs))
-
-        return run
 
 
 def _replicate(x: torch.Tensor, border: int) -> torch.Tensor:
@@ -196,45 +170,3 @@ def _resample_bands(values: torch.Tensor, source_nm: torch.Tensor, target_nm: to
             t = (w - float(src[j - 1])) / float(src[j] - src[j - 1])
             out.append(values[:, j - 1] * (1 - t) + values[:, j] * t)
     return torch.stack(out, dim=1)
-
-
-def _lookup(tables: ProfileTables, sigma_a: torch.Tensor) -> _Lookup:
-    """σa ``(B, L, H, W)`` → flat table rows and fractions ``(B·L, H, W)``."""
-    grid = tables.sigma_a_per_mm
-    n = grid.numel()
-    log_lo, log_hi = math.log(float(grid[0])), math.log(float(grid[-1]))
-    step = (log_hi - log_lo) / (n - 1)
-    t = (torch.log(sigma_a.clamp(float(grid[0]), float(grid[-1]))) - log_lo) / step
-    i0 = torch.clamp(t.detach().floor().long(), 0, n - 2)
-    frac = t - i0.to(t)
-    band = torch.arange(sigma_a.shape[1], device=sigma_a.device).view(1, -1, 1, 1)
-    index = band * n + i0
-    shape = (-1, *sigma_a.shape[-2:])
-    return _Lookup(index.reshape(shape), frac.reshape(shape))
-
-
-@dataclass(frozen=True)
-class _Columns:
-    """A profile's table prepared for one blur plan: flat rows ``(L·S, 1 + K')`` of weights over their
-    sum (identity first, then each blurred Gaussian) and ``(L·S,)`` log of the sum."""
-
-    shape: torch.Tensor
-    log_total: torch.Tensor
-
-
-def _columns(tables: ProfileTables, layer: str, profile: str, plan: BlurPlan) -> _Columns:
-    shape, log_total = tables.normalized(layer, profile)
-    ident = torch.tensor(plan.identity, device=shape.device)
-    merged = torch.cat([shape[..., ident].sum(-1, keepdim=True), shape[..., ~ident]], dim=-1)
-    return _Columns(merged.reshape(-1, merged.shape[-1]), log_total.reshape(-1))
-
-
-def _lerp(column: torch.Tensor, lk: _Lookup) -> torch.Tensor:
-    w0 = column.take(lk.index)
-    w1 = column.take(lk.index + 1)
-    return w0 + lk.frac * (w1 - w0)
-
-
-def _total(cols: _Columns, lk: _Lookup) -> torch.Tensor:
-    """Σ_k w_k per pixel: the profile's plane integral, log-linear between table samples."""
-    return torch.exp(_lerp(cols.log_total, lk))

@@ -41,7 +41,7 @@ __all__ = [
     "table_key",
 ]
 
-TABLE_FORMAT_VERSION = 1
+TABLE_FORMAT_VERSION = 2  # 2: extrapolation distances in float64
 EPIDERMIS_PROFILES = ("R_plus", "T_plus", "R_minus", "T_minus")
 DERMIS_PROFILES = ("R_plus",)
 

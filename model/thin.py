@@ -23,7 +23,8 @@ from .blur import BlurPlan
 from .illumination import Light
 from .maps import SkinMaps
 from .radiometry import entry_transmittance, exit_factor
-from .renderer import RenderResult, SkinRenderer, _columns, _lookup, _replicate
+from .gather import columns, gather, lookup
+from .renderer import RenderResult, SkinRenderer, _replicate
 from .tables import load_thin_dermis_tables
 
 __all__ = ["blend_thin", "render_transmission"]
@@ -74,34 +75,38 @@ def render_transmission(
     plan = BlurPlan.build(tables.variances_mm2, front.mm_per_pixel, blur or rs.blur,
                           boundary="replicate" if light.extends else "zero",
                           identity_below_px=rs.identity_below_px, pyramid_min_px=rs.pyramid_min_px)
-    lk_b, lk_f, lk_d = _lookup(tables, epi_b), _lookup(tables, epi_f), _lookup(thin, derm_f)
-    col = lambda t, layer, p: _columns(t, layer, p, plan)  # noqa: E731
+    lk_b, lk_f = lookup(tables.sigma_a_per_mm, epi_b), lookup(tables.sigma_a_per_mm, epi_f)
+    lk_d = lookup(thin.sigma_a_per_mm, derm_f)
+    col = lambda t, layer, p: columns(t, layer, p, plan)  # noqa: E731
     t1p, r1m = col(tables, "epidermis", "T_plus"), col(tables, "epidermis", "R_minus")
     r3p, t3p = col(tables, "epidermis", "R_minus"), col(tables, "epidermis", "T_minus")
     r2p, t2p, r2m = col(thin, "thin_dermis", "R_plus"), col(thin, "thin_dermis", "T_plus"), col(thin, "thin_dermis", "R_minus")
-    gather = renderer._gather_fn(plan, rs.checkpoint)
+
+    def g(f, sets):
+        return gather(f, sets, plan, lean=rs.checkpoint)
+
 
     f_t = entry_transmittance(o.n_epidermis, o.n_above)
     irradiance = light.irradiance(h, w, border, front.mm_per_pixel, dtype, device)
     phi = (f_t * irradiance).expand(b, wl.numel(), *irradiance.shape[-2:]).reshape(-1, *irradiance.shape[-2:])
 
-    (t1,) = gather(phi, [(t1p, lk_b)])
+    (t1,) = g(phi, [(t1p, lk_b)])
     current = att_b * t1
     into_dermis = current
     for _ in range(round_trips):
-        (r2,) = gather(current, [(r2p, lk_d)])
-        (r1,) = gather(att_b * r2, [(r1m, lk_b)])
+        (r2,) = g(current, [(r2p, lk_d)])
+        (r1,) = g(att_b * r2, [(r1m, lk_b)])
         current = att_b * r1
         into_dermis = into_dermis + current
-    (t2,) = gather(into_dermis, [(t2p, lk_d)])
+    (t2,) = g(into_dermis, [(t2p, lk_d)])
     current = att_f * t2
     into_front = current
     for _ in range(round_trips):
-        (r3,) = gather(current, [(r3p, lk_f)])
-        (r2b,) = gather(att_f * r3, [(r2m, lk_d)])
+        (r3,) = g(current, [(r3p, lk_f)])
+        (r2b,) = g(att_f * r3, [(r2m, lk_d)])
         current = att_f * r2b
         into_front = into_front + current
-    (m,) = gather(into_front, [(t3p, lk_f)])
+    (m,) = g(into_front, [(t3p, lk_f)])
     exitance = m.reshape(b, wl.numel(), *m.shape[-2:])
     if border:
         exitance = exitance[..., border:border + h, border:border + w]

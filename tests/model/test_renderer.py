@@ -207,3 +207,21 @@ def test_series_count_follows_the_tolerance(tmp_path):
     err_a = float((a.exitance[0].double().mean((-1, -2)) / expected - 1).abs().max())
     err_b = float((b.exitance[0].double().mean((-1, -2)) / expected - 1).abs().max())
     assert err_b < err_a < 0.01
+
+
+@pytest.mark.parametrize("blur", ["pyramid", "fft"])
+def test_lean_backward_equals_autograd(tmp_path, blur):
+    """The memory-lean backward (recomputed blur stacks) gives autograd's gradients, pyramid levels included."""
+    maps = freckled_maps(24, 0.1, F64)
+    light = Light("window", size_mm=1.6, border_mm=2.0)
+    grads = {}
+    for lean in (True, False):
+        r = SkinRenderer(ModelSettings(render=RenderSettings(checkpoint=lean)), str(tmp_path))
+        c_m = maps.C_m.clone().requires_grad_()
+        c_he = maps.C_he.clone().requires_grad_()
+        out = r.render(maps.replace(C_m=c_m, C_he=c_he), light, WL[:2], blur=blur, series_terms=3).exitance
+        weights = torch.linspace(0.5, 1.5, out.numel(), dtype=F64).reshape(out.shape)
+        (out * weights).sum().backward()
+        grads[lean] = (c_m.grad, c_he.grad)
+    for lean_g, plain_g in zip(grads[True], grads[False]):
+        torch.testing.assert_close(lean_g, plain_g, rtol=1e-9, atol=1e-12)

@@ -1,0 +1,140 @@
+"""Benchmarks of the heterogeneous renderer (on demand: ``pytest -m bench tests/bench/test_bench_renderer.py -s``).
+
+Each configuration runs in a fresh process (``render_run.py``) so that peak memory is its own.
+Writes to ``bench_results/`` (or ``$SKINLAYERS_BENCH_DIR``):
+
+- ``render_speed.csv``: forward and forward + backward time and peak memory of the paper's case — a
+  256×256 patch (7.5 mm) with its 1 cm border at 9 bands — per blur strategy, on the CPU here and on
+  CUDA when one is present;
+- ``render_tradeoffs.csv`` / ``render_tradeoffs.png``: time against error for the number of Gaussians,
+  the inter-scattering terms and the grid size, against a high-fidelity reference render.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+import torch
+
+pytestmark = pytest.mark.bench
+
+HERE = Path(__file__).resolve().parent
+PAPER = {"size": 256, "mm": 7.5 / 256, "bands": 9, "border_mm": 10.0}
+
+
+def out_dir() -> Path:
+    d = Path(os.environ.get("SKINLAYERS_BENCH_DIR", "bench_results"))
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def run(cfg: dict, timeout: int = 3000) -> dict:
+    proc = subprocess.run([sys.executable, str(HERE / "render_run.py"), json.dumps(cfg)], capture_output=True,
+                          text=True, timeout=timeout)
+    if proc.returncode != 0:
+        raise RuntimeError(proc.stderr[-2000:])
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def write_csv(name: str, rows: list[dict]) -> None:
+    import csv
+
+    keys = sorted({k for r in rows for k in r}, key=lambda k: list(rows[0]).index(k) if k in rows[0] else 99)
+    with (out_dir() / name).open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    print(f"\n{out_dir() / name}:")
+    for r in rows:
+        print("  " + ", ".join(f"{k}={v}" for k, v in r.items()))
+
+
+def test_paper_case_speed_and_memory():
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    rows = []
+    for device in devices:
+        for blur in ("pyramid", "fft"):
+            for backward in (False, True):
+                if blur == "fft" and backward and device == "cpu":
+                    continue  # minutes per run on two cores; the forward shows the ratio
+                r = run({**PAPER, "blur": blur, "backward": backward, "device": device})
+                rows.append({"device": device, "blur": blur, "pass": "forward+backward" if backward else "forward",
+                             "grid": "x".join(map(str, r["grid"])), "terms": r["terms"],
+                             "forward_s": round(r["forward_s"], 2), "backward_s": round(r.get("backward_s", 0.0), 2),
+                             "peak_rss_mb": round(r["peak_rss_mb"]), "peak_device_mb": round(r.get("peak_device_mb", 0))})
+    # the chain is exact but slow: timed on a quarter of the area, same physical size
+    small = {**PAPER, "size": 128, "mm": 7.5 / 128}
+    for blur in ("chain", "pyramid", "fft"):
+        r = run({**small, "blur": blur})
+        rows.append({"device": "cpu", "blur": blur, "pass": "forward (128² patch)", "grid": "x".join(map(str, r["grid"])),
+                     "terms": r["terms"], "forward_s": round(r["forward_s"], 2), "backward_s": 0.0,
+                     "peak_rss_mb": round(r["peak_rss_mb"]), "peak_device_mb": 0})
+    write_csv("render_speed.csv", rows)
+    for r in rows:
+        if r["pass"] == "forward+backward":
+            assert r["peak_rss_mb"] < 4096 or r["peak_device_mb"] < 4096
+
+
+def test_time_against_error():
+    """Error (relative RMS over the window, against a reference: 21 Gaussians, FFT blurs, 12 terms,
+    the same grid) and time, varying one knob at a time around the defaults."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    base = {"size": 96, "mm": 0.06, "bands": 5, "border_mm": 8.0}
+    tmp = Path(tempfile.mkdtemp())
+
+    def render(name: str, **cfg) -> tuple[dict, torch.Tensor]:
+        path = tmp / f"{name}.pt"
+        r = run({**base, **cfg, "save": str(path)})
+        return r, torch.load(path)
+
+    _, ref = render("ref", blur="fft", terms=12)
+    rows = []
+
+    def error(img: torch.Tensor, ref_img: torch.Tensor) -> float:
+        return float(torch.sqrt(((img - ref_img) ** 2).mean()) / torch.sqrt((ref_img**2).mean()))
+
+    for k, std in ((21, 0.01 / 2**1.5), (18, 0.01), (15, 0.01 * 2**1.5), (12, 0.08)):
+        r, img = render(f"k{k}", tables={"n_gaussians": k, "gaussian_std_min_mm": std})
+        rows.append({"knob": "gaussians", "value": k, "seconds": round(r["forward_s"], 3), "rel_rms_error": error(img, ref)})
+    for terms in (1, 2, 3, 4, 6, 8, 10):
+        r, img = render(f"t{terms}", terms=terms)
+        rows.append({"knob": "terms", "value": terms, "seconds": round(r["forward_s"], 3), "rel_rms_error": error(img, ref)})
+    for scale in (1, 2, 4):
+        cfg = {"size": base["size"] // scale, "mm": base["mm"] * scale}
+        _, ref_s = render(f"ref{scale}", blur="fft", terms=12, **cfg)
+        r, img = render(f"g{scale}", **cfg)
+        # compare with the full-resolution reference averaged down to this grid
+        down = torch.nn.functional.avg_pool2d(ref[0], scale)[None] if scale > 1 else ref
+        rows.append({"knob": "grid (mm/px)", "value": round(base["mm"] * scale, 3), "seconds": round(r["forward_s"], 3),
+                     "rel_rms_error": error(img, down)})
+    for mp in (2.0, 3.0, 5.0):
+        r, img = render(f"p{mp}", render={"pyramid_min_px": mp})
+        rows.append({"knob": "pyramid_min_px", "value": mp, "seconds": round(r["forward_s"], 3), "rel_rms_error": error(img, ref)})
+    write_csv("render_tradeoffs.csv", rows)
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    for knob in dict.fromkeys(r["knob"] for r in rows):
+        pts = [r for r in rows if r["knob"] == knob]
+        ax.plot([p["seconds"] for p in pts], [max(p["rel_rms_error"], 1e-6) for p in pts], "o-", label=knob)
+        for p in pts:
+            ax.annotate(str(p["value"]), (p["seconds"], max(p["rel_rms_error"], 1e-6)), fontsize=7,
+                        textcoords="offset points", xytext=(3, 3))
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("forward time (s, CPU)")
+    ax.set_ylabel("relative RMS error vs reference")
+    ax.set_title("Renderer: time against error (window light, 5 bands)", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out_dir() / "render_tradeoffs.png", dpi=120)
+    plt.close(fig)
