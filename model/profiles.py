@@ -90,6 +90,11 @@ class SlabOptics:
         albedo = sigma_s / sigma_t
         ell = 1.0 / sigma_t
         if math.isfinite(thickness_mm):
+            if bool((sigma_a <= 0).any()):
+                raise ValueError(
+                    "sigma_a must be > 0 for a slab: the image series sums geometrically only with some "
+                    "absorption (a clear slab is the limit sigma_a -> 0; use e.g. 1e-9 /mm)"
+                )
             if source_depth == "capped":
                 ell = torch.clamp(ell, max=0.5 * thickness_mm)
             elif bool((ell >= thickness_mm).any()):
