@@ -1,0 +1,166 @@
+"""The session folder's ``manifest.json``: what was captured, how, and where it lies.
+
+A session folder holds ``manifest.json`` and the raw files as the camera wrote them (and, for
+simulated sessions, ``truth/``). The manifest records the schema version, the rig configuration as
+used, subject, site and operator, and for every frame its role (``dark``, ``reference``, ``skin``),
+band, filter position, exposure, file name, SHA-256 and time. It is rewritten atomically after every
+frame (a temporary file, then a rename), so a session broken off at any moment is consistent and can
+be resumed.
+
+A manifest is data, not instructions: a file name that would leave the session folder (an absolute
+path, ``..``, a drive or a separator) is refused wherever a manifest is read.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path, PurePosixPath, PureWindowsPath
+from typing import Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from ..model.settings import format_validation_error
+
+__all__ = ["MANIFEST_NAME", "SCHEMA_VERSION", "FrameRecord", "Manifest", "ManifestError", "file_sha256",
+           "read_manifest", "safe_member", "write_manifest"]
+
+MANIFEST_NAME = "manifest.json"
+SCHEMA_VERSION = 1
+Role = Literal["dark", "reference", "skin"]
+
+
+class ManifestError(ValueError):
+    """A manifest that cannot be used; the message names the file and the problem."""
+
+
+def safe_member(name: str) -> str:
+    """``name`` if it is a plain file name inside a folder (optionally in sub-folders), else ValueError."""
+    if not isinstance(name, str) or not name or "\x00" in name:
+        raise ValueError(f"file name {name!r} is empty or not text")
+    if "\\" in name or PureWindowsPath(name).drive or PurePosixPath(name).is_absolute():
+        raise ValueError(f"file name {name!r} would leave the session folder (absolute path or drive)")
+    parts = PurePosixPath(name).parts
+    if any(p in ("..", ".", "") for p in parts):
+        raise ValueError(f"file name {name!r} would leave the session folder ('..' or '.')")
+    return name
+
+
+class Exposure(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    iso: int = Field(..., gt=0)
+    shutter_s: float = Field(..., gt=0)
+    aperture_f: float = Field(..., gt=0)
+
+
+class FrameRecord(BaseModel):
+    """One captured frame."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    role: Role
+    band_nm: Optional[float] = Field(None, description="Band of the filter (None for the dark frame).")
+    filter_position: int = Field(..., ge=1)
+    exposure: Exposure
+    file: str = Field(..., description="Raw file, relative to the session folder.")
+    sha256: str = Field(..., min_length=64, max_length=64)
+    time: str = Field(..., description="ISO 8601 time the frame was taken (UTC).")
+
+    @field_validator("file")
+    @classmethod
+    def _inside(cls, value: str) -> str:
+        return safe_member(value)
+
+    @property
+    def key(self) -> tuple[str, Optional[float]]:
+        """What the frame is: (role, band); a session has at most one frame per key."""
+        return self.role, self.band_nm
+
+
+class Manifest(BaseModel):
+    """The session's record. ``status`` is ``in_progress`` until every planned frame is taken."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    schema_version: int = SCHEMA_VERSION
+    software_version: str = "unknown"
+    created: str = Field(default_factory=lambda: now_iso())
+    status: Literal["in_progress", "complete"] = "in_progress"
+    subject: str = ""
+    site: str = ""
+    operator: str = ""
+    simulated: bool = False
+    rig: dict = Field(..., description="The rig configuration as used (RigConfig, dumped).")
+    frames: list[FrameRecord] = Field(default_factory=list)
+    notes: dict = Field(default_factory=dict, description="Free-form extras (simulation seed and scene, …).")
+
+    @field_validator("schema_version")
+    @classmethod
+    def _version(cls, value: int) -> int:
+        if value != SCHEMA_VERSION:
+            raise ValueError(f"schema version {value} is not supported (this software reads {SCHEMA_VERSION})")
+        return value
+
+    def frame(self, role: str, band_nm: Optional[float] = None) -> Optional[FrameRecord]:
+        for f in self.frames:
+            if f.role == role and (band_nm is None if f.band_nm is None else band_nm is not None and abs(f.band_nm - band_nm) < 1e-6):
+                return f
+        return None
+
+    def rig_config(self):
+        """The rig as a validated ``RigConfig``."""
+        from .rig import rig_from_dict  # noqa: PLC0415
+
+        return rig_from_dict(self.rig, "manifest rig")
+
+
+def now_iso() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+
+
+def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(chunk), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def write_manifest(session: str | Path, manifest: Manifest) -> Path:
+    """Write ``manifest.json`` atomically (a temporary file in the folder, flushed, then renamed)."""
+    session = Path(session)
+    path = session / MANIFEST_NAME
+    text = json.dumps(manifest.model_dump(mode="json"), indent=2) + "\n"
+    fd, tmp = tempfile.mkstemp(dir=session, prefix=".manifest-", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def read_manifest(session: str | Path) -> Manifest:
+    """Read and validate a session's manifest; ``ManifestError`` names the file and the problem."""
+    path = Path(session) / MANIFEST_NAME
+    if not path.exists():
+        raise ManifestError(f"{Path(session)}: not a session folder (no {MANIFEST_NAME})")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ManifestError(f"{path}: cannot read ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise ManifestError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise ManifestError(f"{path}: expected a JSON object")
+    try:
+        return Manifest.model_validate(data)
+    except ValidationError as exc:
+        raise ManifestError(f"{path}: {format_validation_error(exc)}") from None
