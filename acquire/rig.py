@@ -97,6 +97,22 @@ class GeometryConfig(_Strict):
     window_mm: float = Field(7.5, gt=0, description="Side of the square window in the black tape (DWRR08: 7.5 mm).")
     cube_px: int = Field(256, ge=16, description="Side of the calibrated reflectance cube (DWRR08: 512 → 256).")
     rectify_px: int = Field(512, ge=16, description="Side the window is resampled to before the box filter.")
+    gray_card_roi_px: Optional[list[int]] = Field(
+        None,
+        min_length=4,
+        max_length=4,
+        description=(
+            "Region of the 30% gray card in raw sensor pixels, [x0, y0, x1, y1] half-open. The card is fixed "
+            "to the rig, not to the subject, so it stays at one image place; the simulator writes it."
+        ),
+    )
+
+    @model_validator(mode="after")
+    def _roi(self) -> "GeometryConfig":
+        r = self.gray_card_roi_px
+        if r is not None and not (0 <= r[0] < r[2] and 0 <= r[1] < r[3]):
+            raise ValueError(f"gray_card_roi_px must be [x0, y0, x1, y1] with 0 <= x0 < x1 and 0 <= y0 < y1, got {r}")
+        return self
 
 
 class RigConfig(_Strict):
