@@ -12,6 +12,7 @@ import sys
 
 import typer
 
+from .acquire.devices import DeviceError
 from .model import cli as model_cli
 from .reconstruct import cli as reconstruct_cli
 
@@ -32,7 +33,7 @@ reconstruct_cli.register(app)
 def main() -> None:
     try:
         app()
-    except (ValueError, OSError, KeyError) as exc:
+    except (ValueError, OSError, KeyError, DeviceError) as exc:
         if os.environ.get("SKINLAYERS_DEBUG"):
             raise
         message = " ".join(str(exc).split()) or exc.__class__.__name__
