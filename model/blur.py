@@ -46,12 +46,24 @@ BLUR_STRATEGIES = ("fft", "chain", "pyramid")
 DIRECT_BELOW_PX2 = 4.0
 
 
+#: Kernel taps below this fraction of the centre tap are dropped: far below what float32 images and
+#: the 4σ truncation already leave out.
+TAP_FLOOR = 1e-6
+
+
+def _trim(k: np.ndarray) -> np.ndarray:
+    """Drop the symmetric outer taps that fall below ``TAP_FLOOR`` of the peak, renormalise."""
+    r = (k.size - 1) // 2
+    keep = int(np.nonzero(k[r:] >= TAP_FLOOR * k[r])[0].max())
+    k = k[r - keep:r + keep + 1] if keep > 0 else k[r - 1:r + 2]
+    return k / k.sum()
+
+
 @lru_cache(maxsize=256)
 def _kernel_np(t: float) -> np.ndarray:
     radius = max(1, int(math.ceil(4.0 * math.sqrt(t) + 2.0)))
     n = np.arange(-radius, radius + 1)
-    k = ive(np.abs(n), t)
-    return k / k.sum()
+    return _trim(ive(np.abs(n), t))
 
 
 @lru_cache(maxsize=256)
@@ -63,8 +75,7 @@ def _pixel_kernel_np(t: float) -> np.ndarray:
     x = np.linspace(-1.0, 1.0, 2001)
     tri = 1.0 - np.abs(x)
     g = np.exp(-((n[:, None] - x[None, :]) ** 2) / (2.0 * t)) / math.sqrt(2.0 * math.pi * t)
-    k = np.trapezoid(g * tri[None, :], x, axis=1)
-    return k / k.sum()
+    return _trim(np.trapezoid(g * tri[None, :], x, axis=1))
 
 
 def discrete_gaussian_kernel(variance_px2: float, dtype=torch.float32, device=None) -> torch.Tensor:
@@ -137,21 +148,37 @@ def _separable(img: torch.Tensor, variance_px2: float, boundary: str, pixel: boo
 def _symmetric_pass(x: torch.Tensor, taps: np.ndarray, r: int, dim: int) -> torch.Tensor:
     """Valid 1-D correlation along ``dim`` with a symmetric kernel of radius ``r`` (output shrinks by 2r).
 
-    Without autograd the sums run in place on one scratch buffer: fewer, reused allocations are both
-    faster and kinder to the heap than a temporary per tap.
+    The sums run in place on one scratch buffer: fewer, reused allocations are both faster and kinder
+    to the heap than a temporary per tap. Under autograd the pass is one node whose adjoint is the
+    same pass over the gradient padded by 2r (a symmetric kernel is its own flip): autograd through
+    the shifted sums would allocate a full-size zero image per tap.
     """
-    n = x.shape[dim] - 2 * r
     if torch.is_grad_enabled() and x.requires_grad:
-        out = float(taps[r]) * x.narrow(dim, r, n)
-        for j in range(r):
-            out = out + float(taps[j]) * (x.narrow(dim, j, n) + x.narrow(dim, 2 * r - j, n))
-        return out
+        return _SymmetricPass.apply(x, taps, r, dim)
+    return _symmetric_sums(x, taps, r, dim)
+
+
+def _symmetric_sums(x: torch.Tensor, taps: np.ndarray, r: int, dim: int) -> torch.Tensor:
+    n = x.shape[dim] - 2 * r
     out = torch.mul(x.narrow(dim, r, n), float(taps[r]))
     scratch = torch.empty_like(out)
     for j in range(r):
         torch.add(x.narrow(dim, j, n), x.narrow(dim, 2 * r - j, n), out=scratch)
         out.add_(scratch, alpha=float(taps[j]))
     return out
+
+
+class _SymmetricPass(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, taps, r, dim):  # noqa: D102
+        ctx.taps, ctx.r, ctx.dim = taps, r, dim % x.ndim
+        return _symmetric_sums(x, taps, r, dim)
+
+    @staticmethod
+    def backward(ctx, grad):  # noqa: D102
+        d, r = ctx.dim, ctx.r
+        pad = [0, 0] * (grad.ndim - 1 - d) + [2 * r, 2 * r]
+        return _symmetric_sums(F.pad(grad, pad), ctx.taps, r, d), None, None, None
 
 
 def _margin(variance_px2: float) -> int:
@@ -275,20 +302,46 @@ def _upsample_axis(x: torch.Tensor, factor: int, dim: int) -> torch.Tensor:
     """Cubic upsampling along ``dim`` of samples with two samples of context at each end.
 
     Fine sample X of the output lies at coarse coordinate 2 + (X + ½)/factor - ½ of the input; the
-    output has (n - 4)·factor samples. Each phase is five shifted multiply-adds.
+    output has (n - 4)·factor samples. Each phase is a few shifted multiply-adds, written into the
+    interleaved output; under autograd the adjoint (the transposed interpolation) is written by hand.
     """
-    n = x.shape[dim] - 4
-    phases = []
-    for weights in _keys_phases(factor):
-        acc = None
-        for m, wgt in zip(range(-2, 3), weights):
-            if wgt == 0.0:
-                continue
-            term = wgt * x.narrow(dim, 2 + m, n)
-            acc = term if acc is None else acc + term
-        phases.append(acc)
+    if torch.is_grad_enabled() and x.requires_grad:
+        return _Upsample.apply(x, factor, dim)
+    return _upsample_sums(x, factor, dim)
+
+
+def _phase_taps(factor: int) -> list[list[tuple[int, float]]]:
+    return [[(m, w) for m, w in zip(range(-2, 3), weights) if w != 0.0] for weights in _keys_phases(factor)]
+
+
+def _upsample_sums(x: torch.Tensor, factor: int, dim: int) -> torch.Tensor:
     dim = dim % x.ndim
-    out = torch.stack(phases, dim=dim + 1)
+    n = x.shape[dim] - 4
     shape = list(x.shape)
-    shape[dim] = n * factor
-    return out.reshape(shape)
+    shape[dim:dim + 1] = [n, factor]
+    out = x.new_empty(shape)
+    for p, taps in enumerate(_phase_taps(factor)):
+        dst = out.select(dim + 1, p)
+        torch.mul(x.narrow(dim, 2 + taps[0][0], n), taps[0][1], out=dst)
+        for m, wgt in taps[1:]:
+            dst.add_(x.narrow(dim, 2 + m, n), alpha=wgt)
+    return out.flatten(dim, dim + 1)
+
+
+class _Upsample(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, factor, dim):  # noqa: D102
+        ctx.factor, ctx.dim, ctx.shape = factor, dim % x.ndim, x.shape
+        return _upsample_sums(x, factor, dim)
+
+    @staticmethod
+    def backward(ctx, grad):  # noqa: D102
+        d, f = ctx.dim, ctx.factor
+        n = ctx.shape[d] - 4
+        g = grad.unflatten(d, (n, f))
+        out = grad.new_zeros(ctx.shape)
+        for p, taps in enumerate(_phase_taps(f)):
+            gp = g.select(d + 1, p)
+            for m, wgt in taps:
+                out.narrow(d, 2 + m, n).add_(gp, alpha=wgt)
+        return out, None, None

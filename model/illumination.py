@@ -16,7 +16,9 @@ import torch
 
 __all__ = ["Light", "parse_light"]
 
-DEFAULT_BORDER_MM = 10.0
+#: Skin beyond the maps, when neither the light nor the settings say (DWRR08 §6.3 uses 1 cm; 5 mm
+#: changes a 7.5 mm window's pixels by < 10⁻⁴ relative, measured: docs/renderer.md).
+DEFAULT_BORDER_MM = 5.0
 
 
 @dataclass(frozen=True)
@@ -34,7 +36,7 @@ class Light:
     size_mm: float = 7.5
     period_mm: float = 2.0
     duty: float = 0.5
-    border_mm: float = DEFAULT_BORDER_MM
+    border_mm: float | None = None
     image: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
@@ -46,7 +48,7 @@ class Light:
             raise ValueError("stripes need a period > 0 mm and a duty cycle in (0, 1]")
         if self.kind == "image" and self.image is None:
             raise ValueError("an image light needs an irradiance image")
-        if self.border_mm < 0:
+        if self.border_mm is not None and self.border_mm < 0:
             raise ValueError("border must be >= 0 mm")
 
     @property
@@ -54,8 +56,11 @@ class Light:
         """True when the scene beyond the grid is as its edge (uniform light)."""
         return self.kind == "uniform"
 
-    def border_px(self, mm_per_pixel: float) -> int:
-        return 0 if self.extends else int(math.ceil(self.border_mm / mm_per_pixel))
+    def border_px(self, mm_per_pixel: float, default_mm: float = DEFAULT_BORDER_MM) -> int:
+        """Border width in pixels: the light's own ``border_mm``, else ``default_mm`` (the settings')."""
+        if self.extends:
+            return 0
+        return int(math.ceil((default_mm if self.border_mm is None else self.border_mm) / mm_per_pixel))
 
     def irradiance(self, height: int, width: int, border: int, mm_per_pixel: float,
                    dtype: torch.dtype = torch.float32, device=None) -> torch.Tensor:

@@ -75,7 +75,7 @@ class SkinRenderer:
         wl = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
         b, h, w = maps.shape
         dtype, device = maps.dtype, maps.device
-        border = light.border_px(maps.mm_per_pixel)
+        border = light.border_px(maps.mm_per_pixel, rs.border_mm)
         pad = lambda x: _replicate(x, border)  # noqa: E731 (border parameters follow the nearest pixel)
         params = maps.params()
         padded = type(params)(*(pad(v) for v in params.values()))
@@ -98,6 +98,7 @@ class SkinRenderer:
         cols = {p: columns(tables, "epidermis", p, plan) for p in EPIDERMIS_PROFILES}
         cols["R2_plus"] = columns(tables, "dermis", "R_plus", plan)
         terms = series_terms or self._series_terms(cols, epi, derm, attenuation, b, wl.numel())
+        at = self._cached_lookups(cols, epi, derm, terms)
 
         f_t = entry_transmittance(o.n_epidermis, o.n_above, math.cos(math.radians(light_angle_deg)))
         irradiance = light.irradiance(h, w, border, maps.mm_per_pixel, dtype, device)
@@ -106,16 +107,21 @@ class SkinRenderer:
         def g(f, sets):
             return gather(f, sets, plan, lean=rs.checkpoint)
 
-        m, t1 = g(phi, [(cols["R_plus"], epi), (cols["T_plus"], epi)])
+        m, t1 = g(phi, [(cols["R_plus"], at["R_plus"]), (cols["T_plus"], at["T_plus"])])
         u = attenuation * t1
         for n in range(terms):
-            (r2,) = g(u, [(cols["R2_plus"], derm)])
+            (r2,) = g(u, [(cols["R2_plus"], at["R2_plus"])])
             v = attenuation * r2
             if n + 1 < terms:
-                t_out, r1 = g(v, [(cols["T_minus"], epi), (cols["R_minus"], epi)])
+                t_out, r1 = g(v, [(cols["T_minus"], at["T_minus"]), (cols["R_minus"], at["R_minus"])])
                 u = attenuation * r1
             else:
-                (t_out,) = g(v, [(cols["T_minus"], epi)])
+                if rs.series_closure:
+                    # the rest of the series, Σ_{k≥1} V_{n+k} ≈ V_n ρ/(1-ρ) with ρ = A² R₁⁻ R₂⁺ per pixel:
+                    # exact for homogeneous skin under uniform light, and the rest holds little light
+                    rho = attenuation**2 * total(cols["R_minus"], epi) * total(cols["R2_plus"], derm)
+                    v = v / (1.0 - rho)
+                (t_out,) = g(v, [(cols["T_minus"], at["T_minus"])])
             m = m + t_out
         exitance = m.reshape(b, wl.numel(), *m.shape[-2:])
         if crop and border:
@@ -133,6 +139,19 @@ class SkinRenderer:
         return RenderResult(exitance, image, wl, [terms] * wl.numel(), maps.mm_per_pixel)
 
     # -- pieces ----------------------------------------------------------------------------------
+    def _cached_lookups(self, cols, epi, derm, terms: int) -> dict:
+        """Per profile, its lookup — with the dense weights computed once when the profile is gathered
+        more than once and they fit in ``weight_cache_mb`` (most-used profiles first)."""
+        at = {"R_plus": epi, "T_plus": epi, "T_minus": epi, "R_minus": epi, "R2_plus": derm}
+        budget = self.settings.render.weight_cache_mb * 2**20
+        uses = {"R2_plus": terms, "T_minus": terms, "R_minus": terms - 1}
+        for name in sorted(uses, key=lambda k: -uses[k]):
+            need = at[name].cache_bytes(cols[name])
+            if uses[name] > 1 and need <= budget:
+                at[name] = at[name].cached(cols[name])
+                budget -= need
+        return at
+
     def _series_terms(self, cols, epi, derm, attenuation, batch, bands) -> int:
         """Terms until the geometric tail (A² R₁⁻ R₂⁺ per bounce, worst pixel) holds < tolerance."""
         rs = self.settings.render

@@ -56,7 +56,7 @@ def render_transmission(
     wl = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
     b, h, w = front.shape
     dtype, device = front.dtype, front.device
-    border = light.border_px(front.mm_per_pixel)
+    border = light.border_px(front.mm_per_pixel, rs.border_mm)
     model = renderer.model
     spectra = model.spectra(wl)
 
