@@ -1,4 +1,29 @@
 """Acquisition: filter wheel and camera drivers, their simulated twins, and the capture session.
 
-Built by the acquisition issue; this package is the place it lands.
+Real devices: ``FW102C`` (Thorlabs filter wheel over a serial port), ``GPhotoCamera`` (gphoto2).
+Simulated: ``VirtualFW102C`` (the wheel's protocol on a pseudo-terminal), ``SimulatedWheel``,
+``SimulatedCamera`` photographing a ``SimulatedBench`` (a synthetic ``SkinScene`` rendered with the
+model). The session (``run_session``) knows only the ``FilterWheel`` and ``Camera`` protocols.
 """
+
+from .devices import Camera, CameraError, DeviceError, ExposureSettings, FilterWheel, WheelError
+from .dng import write_dng
+from .fw102c import FW102C
+from .gphoto import RAW_SUFFIXES, GPhotoCamera, detect_cameras, format_shutter_s, parse_aperture_f, parse_shutter_s
+from .manifest import FrameRecord, Manifest, ManifestError, read_manifest, write_manifest
+from .rig import RigConfig, RigError, load_rig
+from .scene import SceneConfig, SceneError, SkinScene, load_scene
+from .session import AutoOperator, SessionError, SessionSummary, plan_session, run_session
+from .simdevices import SimulatedCamera, SimulatedWheel
+from .simulated import SimulatedBench, SimulatedFrame
+from .simulation_settings import SimulationError, SimulationSettings, load_simulation_settings
+from .virtual_fw102c import WHEEL_FAULTS, VirtualFW102C
+
+__all__ = [
+    "FW102C", "RAW_SUFFIXES", "WHEEL_FAULTS", "AutoOperator", "Camera", "CameraError", "DeviceError", "ExposureSettings",
+    "FilterWheel", "FrameRecord", "GPhotoCamera", "Manifest", "ManifestError", "RigConfig", "RigError", "SceneConfig",
+    "SceneError", "SessionError", "SessionSummary", "SimulatedBench", "SimulatedCamera", "SimulatedFrame",
+    "SimulatedWheel", "SimulationError", "SimulationSettings", "SkinScene", "VirtualFW102C", "WheelError",
+    "detect_cameras", "format_shutter_s", "load_rig", "load_scene", "load_simulation_settings", "parse_aperture_f",
+    "parse_shutter_s", "plan_session", "read_manifest", "run_session", "write_dng", "write_manifest",
+]

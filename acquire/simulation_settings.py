@@ -1,0 +1,191 @@
+"""Settings of the simulated bench: camera geometry, flash, filters, sensor, and the true skin render.
+
+Typed and validated (``configs/simulation.yaml`` is the embedded default). The rig (bands, exposures,
+window, targets, camera angle) comes from the rig config; these settings say how the simulator turns
+it into pictures.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal, Optional
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from ..model.settings import format_validation_error
+
+__all__ = ["ChannelCurve", "SimulationError", "SimulationSettings", "load_simulation_settings", "simulation_from_dict"]
+
+
+class SimulationError(ValueError):
+    """Simulation settings that cannot be used; the message names the file or key and the problem."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+
+class SimCamera(_Strict):
+    distance_mm: float = Field(270.0, gt=10, description="Centre of projection to the window centre (mm).")
+    window_span_px: Optional[int] = Field(None, ge=16, description="Raw px across the window's centre line; None: 2 × rectify_px.")
+    field_of_view_mm: tuple[float, float] = Field((12.0, 10.0), description="Skin-plane width × height the sensor covers (mm).")
+    psf_sigma_px: float = Field(1.0, ge=0, le=10, description="Gaussian lens blur (raw px).")
+    vignetting: float = Field(0.30, ge=0, lt=1, description="Fall-off at the sensor corners (0.3: 30%).")
+    supersample: int = Field(2, ge=1, le=8, description="Samples per raw pixel per axis in the warp.")
+
+
+class SimScene(_Strict):
+    tape_reflectance: float = Field(0.03, ge=0, le=1, description="Reflectance of the black tape (flat).")
+    gray_card_mm: tuple[float, float, float, float] = Field(
+        (-5.8, -1.5, -4.3, 1.5), description="Gray card, fixed to the rig: [x0, y0, x1, y1] in skin-plane mm."
+    )
+
+    @model_validator(mode="after")
+    def _card(self) -> "SimScene":
+        x0, y0, x1, y1 = self.gray_card_mm
+        if not (x0 < x1 and y0 < y1):
+            raise ValueError(f"gray_card_mm must be [x0, y0, x1, y1] with x0 < x1 and y0 < y1, got {list(self.gray_card_mm)}")
+        return self
+
+
+class SimFlash(_Strict):
+    temperature_k: float = Field(6000.0, ge=1000, le=20000, description="Blackbody temperature of the xenon continuum (K).")
+    jitter: float = Field(0.05, ge=0, lt=1, description="Flash energy uniform within ± this fraction.")
+
+
+class SimMotion(_Strict):
+    max_shift_px: float = Field(10.0, ge=0, description="Largest subject shift between frames (raw px at the window centre).")
+    max_rotation_deg: float = Field(0.2, ge=0, le=10, description="Largest subject rotation about the window centre.")
+
+
+class SimFilters(_Strict):
+    wavelength_samples: int = Field(3, ge=1, le=15, description="Gauss–Hermite nodes across each band-pass.")
+
+
+class ChannelCurve(_Strict):
+    """One Bayer channel's relative spectral sensitivity: an asymmetric Gaussian main lobe plus a
+    Gaussian side lobe (fitted to measured camera curves; see ``SimSensor.sensitivity``)."""
+
+    peak: float = Field(..., ge=0)
+    centre_nm: float
+    sigma_left_nm: float = Field(..., gt=0)
+    sigma_right_nm: float = Field(..., gt=0)
+    side_peak: float = Field(0.0, ge=0)
+    side_centre_nm: float = 500.0
+    side_sigma_nm: float = Field(30.0, gt=0)
+
+
+def _nikon_d5100() -> dict[str, ChannelCurve]:
+    return {
+        "red": ChannelCurve(peak=0.952, centre_nm=589.6, sigma_left_nm=8.59, sigma_right_nm=39.4,
+                            side_peak=0.074, side_centre_nm=511.2, side_sigma_nm=63.7),
+        "green": ChannelCurve(peak=0.949, centre_nm=534.5, sigma_left_nm=26.2, sigma_right_nm=38.7,
+                              side_peak=0.316, side_centre_nm=476.6, side_sigma_nm=30.6),
+        "blue": ChannelCurve(peak=0.646, centre_nm=427.7, sigma_left_nm=5.90, sigma_right_nm=56.0,
+                             side_peak=0.512, side_centre_nm=472.3, side_sigma_nm=25.5),
+    }
+
+
+class SimSensor(_Strict):
+    bit_depth: Literal[12, 16] = Field(16, description="Bits per sample in the DNG (pidng's 14-bit path is broken).")
+    white_level: int = Field(16383, gt=0, description="Largest DN the converter gives (saturation).")
+    black_level: tuple[int, int, int, int] = Field(
+        (1024, 1024, 1024, 1024), description="Black level (DN) at the RGGB positions R, G (R row), G (B row), B."
+    )
+    full_well_e: float = Field(25000.0, gt=0, description="Electrons a pixel holds.")
+    e_per_dn_iso100: float = Field(1.6, gt=0, description="Electrons per DN at ISO 100; ISO n divides it by n/100.")
+    read_noise_e: float = Field(2.5, ge=0, description="Read noise before the gain (electrons, rms).")
+    read_noise_dn: float = Field(1.0, ge=0, description="Read noise after the gain (DN, rms).")
+    white_electrons: Optional[float] = Field(
+        None, gt=0,
+        description=(
+            "Flash power, as the electrons of a green pixel at the image centre from a white diffuser through a 10-nm "
+            "filter at 550 nm at f/10. None: set as an operator sets the flash, so that the brightest reference "
+            "frame of the rig (Spectralon at the centre, the flash at its strongest) fills reference_fill of the range."
+        ),
+    )
+    reference_fill: float = Field(0.8, gt=0, le=1, description="Fraction of white - black the brightest reference reaches.")
+    sensitivity: dict[Literal["red", "green", "blue"], ChannelCurve] = Field(
+        default_factory=_nikon_d5100,
+        description=(
+            "Per-channel spectral sensitivity: closed forms least-squares fitted (400–700 nm) to the Nikon D5100 "
+            "curves measured by the UK National Physical Laboratory (colour-science's MSDS_CAMERA_SENSITIVITIES); "
+            "within 0.053 of the channel peak everywhere."
+        ),
+    )
+    iso_values: list[int] = Field(
+        [100, 125, 160, 200, 250, 320, 400, 500, 640, 800, 1000, 1250, 1600, 2000, 2500, 3200, 4000, 5000, 6400],
+        description="ISO settings the camera accepts (third stops); others are ignored, as a camera does.",
+    )
+    shutter_values_s: list[float] = Field(
+        [1 / 4000, 1 / 3200, 1 / 2500, 1 / 2000, 1 / 1600, 1 / 1250, 1 / 1000, 1 / 800, 1 / 640, 1 / 500, 1 / 400,
+         1 / 320, 1 / 250, 1 / 200, 1 / 160, 1 / 125, 1 / 100, 1 / 80, 1 / 60, 1 / 50, 1 / 40, 1 / 30, 1 / 25, 1 / 20,
+         1 / 15, 1 / 13, 1 / 10, 1 / 8, 1 / 6, 1 / 5, 1 / 4, 0.3, 0.4, 0.5, 0.6, 0.8, 1.0, 1.3, 1.6, 2.0, 2.5, 3.2, 4.0,
+         5.0, 6.0, 8.0, 10.0, 13.0, 15.0, 20.0, 25.0, 30.0],
+        description="Shutter times the camera accepts (s).",
+    )
+    aperture_values: list[float] = Field(
+        [2.8, 3.2, 3.5, 4.0, 4.5, 5.0, 5.6, 6.3, 7.1, 8.0, 9.0, 10.0, 11.0, 13.0, 14.0, 16.0, 18.0, 20.0, 22.0, 25.0,
+         29.0, 32.0],
+        description="f-numbers the lens accepts.",
+    )
+
+    @model_validator(mode="after")
+    def _levels(self) -> "SimSensor":
+        top = (1 << self.bit_depth) - 1
+        if self.white_level > top:
+            raise ValueError(f"white_level {self.white_level} exceeds {top}, the largest {self.bit_depth}-bit value")
+        if any(not 0 <= b < self.white_level for b in self.black_level):
+            raise ValueError(f"black_level {list(self.black_level)} must lie within 0 … white_level - 1 ({self.white_level - 1})")
+        return self
+
+
+class SimTruth(_Strict):
+    oversample: int = Field(2, ge=2, le=8, description="Truth grid = cube grid / oversample (at least 2× finer).")
+    margin_mm: float = Field(0.5, ge=0.05, description="Skin mapped beyond the window on every side (mm).")
+    border_mm: float = Field(3.0, ge=0, description="Renderer border beyond the maps for the window light (mm).")
+    blur: Literal["fft", "pyramid", "chain"] = Field(
+        "pyramid", description="Renderer blur strategy for the truth (pyramid: within 7e-4 of fft's peak, 20–35× faster)."
+    )
+    identity_below_px: float = Field(0.0, ge=0, description="Gaussians narrower than this act as the identity.")
+    series_tolerance: float = Field(1e-3, gt=0, lt=1, description="Light left in the inter-scattering series.")
+
+
+class SimulationSettings(_Strict):
+    """How the simulated bench turns the rig and a scene into raw frames."""
+
+    camera: SimCamera = SimCamera()
+    scene: SimScene = SimScene()
+    flash: SimFlash = SimFlash()
+    motion: SimMotion = SimMotion()
+    filters: SimFilters = SimFilters()
+    sensor: SimSensor = SimSensor()
+    truth: SimTruth = SimTruth()
+
+
+def default_simulation_path() -> Path:
+    from ..configs import config_path  # noqa: PLC0415
+
+    return config_path("simulation.yaml")
+
+
+def load_simulation_settings(path: str | Path | None = None) -> SimulationSettings:
+    """Settings of a YAML file (the embedded ``configs/simulation.yaml`` when ``path`` is None)."""
+    path = Path(path) if path is not None else default_simulation_path()
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except OSError as exc:
+        raise SimulationError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except yaml.YAMLError as exc:
+        raise SimulationError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
+    if not isinstance(data, dict):
+        raise SimulationError(f"{path}: expected a mapping at the top level")
+    return simulation_from_dict(data, str(path))
+
+
+def simulation_from_dict(data: dict, source: str = "simulation settings") -> SimulationSettings:
+    try:
+        return SimulationSettings.model_validate(data)
+    except ValidationError as exc:
+        raise SimulationError(f"{source}: {format_validation_error(exc)}") from None
