@@ -96,6 +96,7 @@ def write_dng(
     data = bytes(writer.convert(raw))
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".dng")
+    os.fchmod(fd, 0o644)  # mkstemp makes it private; a session is shared data
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)

@@ -135,6 +135,7 @@ def write_manifest(session: str | Path, manifest: Manifest) -> Path:
     path = session / MANIFEST_NAME
     text = json.dumps(manifest.model_dump(mode="json"), indent=2) + "\n"
     fd, tmp = tempfile.mkstemp(dir=session, prefix=".manifest-", suffix=".tmp")
+    os.fchmod(fd, 0o644)  # mkstemp makes it private; a session is shared data
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)

@@ -12,6 +12,7 @@ import sys
 
 import typer
 
+from .acquire import cli as acquire_cli
 from .acquire.devices import DeviceError
 from .model import cli as model_cli
 from .reconstruct import cli as reconstruct_cli
@@ -27,6 +28,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 model_cli.register(app)
+acquire_cli.register(app)
 reconstruct_cli.register(app)
 
 

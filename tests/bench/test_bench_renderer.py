@@ -55,19 +55,31 @@ def write_csv(name: str, rows: list[dict]) -> None:
         print("  " + ", ".join(f"{k}={v}" for k, v in r.items()))
 
 
+#: The renderer as it stood before the speed work: no weight cache, no series closure, tolerance 1e-3.
+PLAIN = {"series_closure": False, "weight_cache_mb": 0, "series_tolerance": 1e-3}
+
+
 def test_paper_case_speed_and_memory():
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     rows = []
+
+    def row(r, device, blur, backward, label):
+        rows.append({"device": device, "blur": blur, "pass": ("forward+backward" if backward else "forward") + label,
+                     "grid": "x".join(map(str, r["grid"])), "terms": r["terms"],
+                     "forward_s": round(r["forward_s"], 2), "backward_s": round(r.get("backward_s", 0.0), 2),
+                     "peak_rss_mb": round(r["peak_rss_mb"]), "peak_device_mb": round(r.get("peak_device_mb", 0))})
+
     for device in devices:
         for blur in ("pyramid", "fft"):
             for backward in (False, True):
                 if blur == "fft" and backward and device == "cpu":
                     continue  # minutes per run on two cores; the forward shows the ratio
-                r = run({**PAPER, "blur": blur, "backward": backward, "device": device})
-                rows.append({"device": device, "blur": blur, "pass": "forward+backward" if backward else "forward",
-                             "grid": "x".join(map(str, r["grid"])), "terms": r["terms"],
-                             "forward_s": round(r["forward_s"], 2), "backward_s": round(r.get("backward_s", 0.0), 2),
-                             "peak_rss_mb": round(r["peak_rss_mb"]), "peak_device_mb": round(r.get("peak_device_mb", 0))})
+                row(run({**PAPER, "blur": blur, "backward": backward, "device": device}), device, blur, backward, "")
+        # side by side: the same case without the weight cache and the closure; and the default 5 mm border
+        row(run({**PAPER, "blur": "pyramid", "device": device, "render": PLAIN}), device, "pyramid", False, " (plain series)")
+        for backward in (False, True):
+            row(run({**PAPER, "border_mm": 5.0, "blur": "pyramid", "backward": backward, "device": device}),
+                device, "pyramid", backward, " (5 mm border)")
     # the chain is exact but slow: timed on a quarter of the area, same physical size
     small = {**PAPER, "size": 128, "mm": 7.5 / 128}
     for blur in ("chain", "pyramid", "fft"):
@@ -97,7 +109,7 @@ def test_time_against_error():
         r = run({**base, **cfg, "save": str(path)})
         return r, torch.load(path)
 
-    _, ref = render("ref", blur="fft", terms=12)
+    _, ref = render("ref", blur="fft", terms=12, render={"series_closure": False})
     rows = []
 
     def error(img: torch.Tensor, ref_img: torch.Tensor) -> float:
@@ -107,11 +119,16 @@ def test_time_against_error():
         r, img = render(f"k{k}", tables={"n_gaussians": k, "gaussian_std_min_mm": std})
         rows.append({"knob": "gaussians", "value": k, "seconds": round(r["forward_s"], 3), "rel_rms_error": error(img, ref)})
     for terms in (1, 2, 3, 4, 6, 8, 10):
-        r, img = render(f"t{terms}", terms=terms)
+        r, img = render(f"t{terms}", terms=terms, render={"series_closure": False})
         rows.append({"knob": "terms", "value": terms, "seconds": round(r["forward_s"], 3), "rel_rms_error": error(img, ref)})
+        r, img = render(f"c{terms}", terms=terms)
+        rows.append({"knob": "terms (closed)", "value": terms, "seconds": round(r["forward_s"], 3),
+                     "rel_rms_error": error(img, ref)})
+    for border in (1.0, 2.0, 3.0, 5.0):
+        r, img = render(f"b{border}", border_mm=border)
+        rows.append({"knob": "border (mm)", "value": border, "seconds": round(r["forward_s"], 3), "rel_rms_error": error(img, ref)})
     for scale in (1, 2, 4):
         cfg = {"size": base["size"] // scale, "mm": base["mm"] * scale}
-        _, ref_s = render(f"ref{scale}", blur="fft", terms=12, **cfg)
         r, img = render(f"g{scale}", **cfg)
         # compare with the full-resolution reference averaged down to this grid
         down = torch.nn.functional.avg_pool2d(ref[0], scale)[None] if scale > 1 else ref
