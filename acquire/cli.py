@@ -157,5 +157,32 @@ def capture(
     typer.echo(f"next:    skinlayers calibrate {out}")
 
 
+def example_maps(
+    out: Path = typer.Argument(..., help="Maps file to write (OpenEXR, the renderer's map format)."),
+    size: int = typer.Option(256, "--size", help="Pixels per side."),
+    mm_per_pixel: float = typer.Option(7.5 / 256, "--mm-per-pixel", help="Pixel size in mm."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the scene's variation, freckles, scar, veins and hairs."),
+    scene: Optional[Path] = typer.Option(None, "--scene", help="Scene YAML (default: configs/scene.yaml)."),
+) -> None:
+    """Write a synthetic patch — the simulator's scene: smooth variation, freckles, a scar, veins, hairs.
+
+    Example: skinlayers example-maps maps.exr && skinlayers render maps.exr --light window:5 -o out
+    """
+    import torch  # noqa: PLC0415
+
+    from ..model.maps_io import write_maps  # noqa: PLC0415
+    from .scene import SkinScene, load_scene  # noqa: PLC0415
+
+    if not 8 <= size <= 4096:
+        raise ValueError("--size must be 8–4096 pixels")
+    if not 0 < mm_per_pixel < 10:
+        raise ValueError("--mm-per-pixel must be a pixel size in mm (0–10)")
+    wavelengths = torch.arange(400.0, 701.0, 25.0, dtype=torch.float64)  # veins and hairs, interpolated between
+    maps = SkinScene(load_scene(scene), seed).maps(mm_per_pixel, size, wavelengths)
+    write_maps(out, maps, attributes={"software": "skinlayers example-maps", "seed": str(seed)})
+    typer.echo(f"wrote {out}: {size}×{size} px, {size * mm_per_pixel:.2f} mm across")
+
+
 def register(app: typer.Typer) -> None:
     app.command("capture")(capture)
+    app.command("example-maps")(example_maps)

@@ -320,42 +320,8 @@ def _write_png(path: Path, rgb: torch.Tensor) -> None:
     plt.imsave(path, rgb.clamp(0, 1).numpy())
 
 
-def example_maps(
-    out: Path = typer.Argument(..., help="Maps file to write (OpenEXR)."),
-    size: int = typer.Option(256, "--size", help="Pixels per side."),
-    mm_per_pixel: float = typer.Option(7.5 / 256, "--mm-per-pixel", help="Pixel size in mm."),
-    seed: int = typer.Option(0, "--seed", help="Random seed of the freckles."),
-) -> None:
-    """Write a synthetic patch to try `render` with: smooth variation, freckles, a pale scar, a vein.
-
-    Example: skinlayers example-maps maps.exr && skinlayers render maps.exr --light window:5 -o out
-    """
-    from .maps import SkinMaps  # noqa: PLC0415
-    from .maps_io import write_maps  # noqa: PLC0415
-
-    if not 8 <= size <= 4096:
-        raise ValueError("--size must be 8–4096 pixels")
-    g = torch.Generator().manual_seed(seed)
-    y, x = torch.meshgrid(torch.linspace(0, 1, size), torch.linspace(0, 1, size), indexing="ij")
-    c_m = 0.008 * (1 + 0.4 * torch.sin(5 * x + 1) * torch.cos(3 * y))
-    for _ in range(12):
-        cy, cx, r = torch.rand(3, generator=g)
-        c_m = c_m + 0.05 * torch.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (0.0004 + 0.002 * r))
-    scar = torch.exp(-((y - 0.25 - 0.3 * x) ** 2) / 0.0008)
-    c_hd = 0.007 * (1 - 0.8 * scar) * (1 + 0.3 * y)
-    c_he = 0.003 * (1 - 0.8 * scar)
-    vein = torch.exp(-((x - 0.7 - 0.1 * torch.sin(6 * y)) ** 2) / 0.0006)
-    full = lambda v: torch.full((1, size, size), v)  # noqa: E731
-    maps = SkinMaps(c_m[None], full(0.4), c_he[None], full(0.0008), c_hd[None], mm_per_pixel,
-                    absorbance=torch.stack([1.2 * vein, 0.8 * vein, 1.0 * vein])[None],
-                    absorbance_wavelength_nm=torch.tensor([450.0, 550.0, 650.0], dtype=torch.float64))
-    write_maps(out, maps.validate("example"), attributes={"software": "skinlayers example-maps"})
-    typer.echo(f"wrote {out}: {size}×{size} px, {size * mm_per_pixel:.2f} mm across")
-
-
 def register(app: typer.Typer) -> None:
     app.command("spectrum")(spectrum)
     app.command("skin-types")(skin_types)
     app.command("tables")(tables)
     app.command("render")(render)
-    app.command("example-maps")(example_maps)
