@@ -14,6 +14,7 @@ import typer
 
 from .acquire import cli as acquire_cli
 from .acquire.devices import DeviceError
+from .calibration import cli as calibration_cli
 from .model import cli as model_cli
 from .reconstruct import cli as reconstruct_cli
 
@@ -29,6 +30,7 @@ app = typer.Typer(
 )
 model_cli.register(app)
 acquire_cli.register(app)
+calibration_cli.register(app)
 reconstruct_cli.register(app)
 
 

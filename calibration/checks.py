@@ -1,0 +1,202 @@
+"""Quality checks of a session and its calibration: which problems refuse, which are flagged.
+
+**Errors** (calibration stops; one line naming the file, band or value):
+
+| problem | exception |
+|---|---|
+| no or invalid manifest | ``acquire.manifest.ManifestError`` |
+| a file the manifest names is missing | ``FrameMissingError`` (an ``OSError``) |
+| a frame's SHA-256 differs from the manifest | ``ChecksumMismatchError`` |
+| a rig band lacks its reference or skin frame; no black frame (when used) | ``BandMissingError`` |
+| a frame taken at another filter position than the rig's band | ``CalibrationError`` |
+| a corrupt, truncated or non-Bayer raw | ``RawDecodeError`` |
+| frames of different sizes | ``CalibrationError`` |
+| no window, or more than one candidate, in a skin frame | ``WindowNotFoundError`` |
+| a reference frame darker under the window than the skin (no Spectralon there) | ``CalibrationError`` |
+| gray card saturated, dark, outside the image, or its region unknown (when used) | ``CalibrationError`` |
+
+Each of these leaves nothing to calibrate, or would make a whole band silently wrong: a frame that is
+not the one recorded, a band without its flat field, a scale from a clipped card.
+
+**Flags** (calibration goes on; recorded in ``calibration.json`` under ``flags`` and printed in the
+summary; where the problem is local, the cube's ``mask`` is 0 there):
+
+| code | when | mask |
+|---|---|---|
+| ``saturated`` | saturated pixels of the skin or reference frame fall in the window | 0 there |
+| ``underexposed`` | skin or reference below ``underexposure_level`` in the window | 0 there |
+| ``many_invalid`` | a band's saturated + under-exposed share of the window exceeds ``max_flagged_fraction`` | — |
+| ``gray_card_drift`` | \\|flash factor − 1\\| > ``gray_card_drift`` (still corrected; a failing flash or a shadow on the card) | — |
+| ``misaligned`` | a band's alignment shift exceeds ``max_misalignment_px`` (cube px) | — |
+| ``alignment_failed`` | ECC did not converge for a band (too little texture), or found a shift beyond ``max_alignment_px``; the band is left as rectified | — |
+| ``edge_model`` | the edge model failed on a side of a window; that side keeps its derivative-peak line | — |
+
+These leave most of the cube usable, and a person looking at the contact sheet can judge them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Iterable, Optional
+
+import numpy as np
+
+from ..acquire.manifest import FrameRecord, Manifest, file_sha256, safe_member
+from ..acquire.rig import RigConfig
+from .errors import BandMissingError, CalibrationError, ChecksumMismatchError, FrameMissingError
+from .settings import CalibrationSettings
+
+__all__ = [
+    "BandFrames",
+    "Flag",
+    "alignment_flags",
+    "exposure_flags",
+    "gray_card_flags",
+    "select_frames",
+    "verify_files",
+]
+
+
+@dataclass(frozen=True)
+class Flag:
+    """A problem calibration records and goes past: ``code`` (see the module table), the band (None for
+    the session), a one-line ``message`` and the measured ``value``."""
+
+    code: str
+    band_nm: Optional[float]
+    message: str
+    value: Optional[float] = None
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class BandFrames:
+    """The frames of one rig band."""
+
+    wavelength_nm: float
+    reference: FrameRecord
+    skin: FrameRecord
+
+
+def verify_files(session: Path, frames: Iterable[FrameRecord]) -> dict[str, Path]:
+    """Every frame's file exists in ``session`` and matches its SHA-256; returns name → path.
+
+    Raises ``FrameMissingError`` listing the missing files, or ``ChecksumMismatchError`` naming the
+    first file whose content differs from the manifest's record.
+    """
+    paths, missing = {}, []
+    frames = list(frames)
+    for f in frames:
+        path = session / safe_member(f.file)
+        if not path.is_file():
+            missing.append(f.file)
+        paths[f.file] = path
+    if missing:
+        raise FrameMissingError(f"{session}: {len(missing)} file(s) named in the manifest are missing: {', '.join(missing)}")
+    for f in frames:
+        actual = file_sha256(paths[f.file])
+        if actual != f.sha256.lower():
+            raise ChecksumMismatchError(
+                f"{paths[f.file]}: SHA-256 {actual[:12]}… does not match the manifest's {f.sha256[:12]}… (file changed or corrupt)"
+            )
+    return paths
+
+
+def select_frames(manifest: Manifest, rig: RigConfig, need_dark: bool) -> tuple[Optional[FrameRecord], list[BandFrames]]:
+    """The black frame and each rig band's reference and skin frames, in the rig's band order.
+
+    Raises ``BandMissingError`` naming every band and role that is missing, and ``CalibrationError``
+    for a frame taken at another filter position than its band's.
+    """
+    dark = manifest.frame("dark")
+    problems = []
+    if need_dark and dark is None:
+        problems.append("the black frame (role dark)")
+    bands = []
+    for band in rig.bands:
+        found = {}
+        for role in ("reference", "skin"):
+            f = manifest.frame(role, band.wavelength_nm)
+            if f is None:
+                problems.append(f"{role} at {band.wavelength_nm:g} nm")
+                continue
+            if f.filter_position != band.filter_position:
+                raise CalibrationError(
+                    f"{f.file}: {role} frame at {band.wavelength_nm:g} nm was taken at filter position "
+                    f"{f.filter_position}, the rig's band is at {band.filter_position}"
+                )
+            found[role] = f
+        if len(found) == 2:
+            bands.append(BandFrames(band.wavelength_nm, found["reference"], found["skin"]))
+    if problems:
+        raise BandMissingError(f"session lacks {', '.join(problems)} (status {manifest.status}); resume the capture")
+    return dark, bands
+
+
+def exposure_flags(band_nm: float, saturated: float, underexposed: float, settings: CalibrationSettings) -> list[Flag]:
+    """Flags for a band whose window has saturated or under-exposed pixels (fractions of the window)."""
+    flags = []
+    if saturated > 0:
+        flags.append(Flag("saturated", band_nm, f"{band_nm:g} nm: {saturated:.2%} of the window saturated (masked)", saturated))
+    if underexposed > 0:
+        flags.append(
+            Flag("underexposed", band_nm, f"{band_nm:g} nm: {underexposed:.2%} of the window under-exposed (masked)", underexposed)
+        )
+    if saturated + underexposed > settings.max_flagged_fraction:
+        share = saturated + underexposed
+        flags.append(
+            Flag(
+                "many_invalid",
+                band_nm,
+                f"{band_nm:g} nm: {share:.1%} of the window is saturated or under-exposed "
+                f"(more than {settings.max_flagged_fraction:.0%}); check the exposure",
+                share,
+            )
+        )
+    return flags
+
+
+def gray_card_flags(band_nm: float, flash_factor: float, settings: CalibrationSettings) -> list[Flag]:
+    """A flag when the flash factor drifts from 1 by more than the threshold."""
+    drift = abs(flash_factor - 1.0)
+    if drift > settings.gray_card_drift:
+        return [
+            Flag(
+                "gray_card_drift",
+                band_nm,
+                f"{band_nm:g} nm: flash factor {flash_factor:.3f} (gray card) drifts by {drift:.1%} "
+                f"(> {settings.gray_card_drift:.0%}); corrected, but check the flash and the card",
+                flash_factor,
+            )
+        ]
+    return []
+
+
+def alignment_flags(
+    wavelengths_nm: Iterable[float], shifts_cube_px: np.ndarray, converged: np.ndarray, settings: CalibrationSettings
+) -> list[Flag]:
+    """Flags for bands whose alignment failed or whose shift exceeds ``max_misalignment_px``."""
+    flags = []
+    for w, shift, ok in zip(wavelengths_nm, shifts_cube_px, converged):
+        if not ok:
+            flags.append(
+                Flag(
+                    "alignment_failed", w, f"{w:g} nm: band alignment failed (no convergence or an implausible shift); left as rectified"
+                )
+            )
+            continue
+        size = float(np.hypot(*shift))
+        if size > settings.max_misalignment_px:
+            flags.append(
+                Flag(
+                    "misaligned",
+                    w,
+                    f"{w:g} nm: band shifted by {size:.2f} cube px to align (> {settings.max_misalignment_px:g}); "
+                    "check the window detection on the contact sheet",
+                    size,
+                )
+            )
+    return flags

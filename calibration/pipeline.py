@@ -1,0 +1,341 @@
+"""``calibrate_session``: a session folder → ``cube.exr``, ``calibration.json`` and a contact sheet.
+
+The chain (PHYSICS.md §7): read and check the manifest and every frame's checksum; decode the black
+frame and, band by band, the Spectralon reference and the skin frame into 2×2 superpixels; subtract
+the black frame; find the window in the skin frame; divide by the reference at the same camera pixels,
+scale by the gray card, the Spectralon's certified reflectance and the polarization factors; rectify
+the window to ``rectify_px``²; align the bands to the middle one; box-filter to ``cube_px``². Nothing
+is written until everything is computed, and nothing is ever written into the session folder.
+
+Output (default folder: ``<session>_calibrated`` beside the session, so the session stays exactly as
+captured — checksums, resumable capture, read-only archives):
+
+- ``cube.exr``: ``R_<nm>`` per band and ``mask`` (``calibration/cube.py``); meta: window corners per
+  band (raw px), camera angle, session, settings, alignment shifts;
+- ``calibration.json``: per band exposure, factors (flash, exposure, Spectralon, polarization),
+  gray-card levels, window, alignment shift, SNR estimate, saturated and under-exposed fractions; flags;
+  time per stage; the settings;
+- ``contact_sheet.png`` (``report.py``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import cv2
+import numpy as np
+import torch
+
+from ..acquire.manifest import now_iso, read_manifest
+from .align import align_bands, apply_alignment
+from .checks import Flag, alignment_flags, exposure_flags, gray_card_flags, select_frames, verify_files
+from .corrections import band_factors, gray_card_level, reflectance_ratio, roi_to_superpixels, subtract_dark
+from .cube import Cube, _version, write_cube
+from .errors import CalibrationError
+from .raw import cell_centroid, read_raw
+from .report import thumbnail, write_contact_sheet
+from .settings import CalibrationSettings
+from .window import box_filter, find_window, rectify, superpixel_to_raw_xy
+
+__all__ = ["CalibrationResult", "ProgressFn", "calibrate_session", "default_out_dir"]
+
+ProgressFn = Callable[[int, int, str], None]
+"""``progress(done, total, message)``, called after each step."""
+
+CUBE_NAME, REPORT_NAME, SHEET_NAME = "cube.exr", "calibration.json", "contact_sheet.png"
+
+
+@dataclass
+class CalibrationResult:
+    """What ``calibrate_session`` made: the cube (as written), where, the report's content, the flags
+    and the seconds spent per stage."""
+
+    cube: Cube
+    out_dir: Path
+    cube_path: Path
+    report_path: Path
+    contact_sheet_path: Path
+    report: dict
+    flags: list[Flag] = field(default_factory=list)
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def default_out_dir(session: str | Path) -> Path:
+    """``<session>_calibrated`` beside the session folder."""
+    session = Path(session).resolve()
+    return session.parent / f"{session.name}_calibrated"
+
+
+def calibrate_session(
+    session_dir: str | Path,
+    out_dir: str | Path | None = None,
+    settings: Optional[CalibrationSettings] = None,
+    progress: Optional[ProgressFn] = None,
+    *,
+    overwrite: bool = False,
+) -> CalibrationResult:
+    """Calibrate a session folder into a reflectance cube (see the module docstring).
+
+    ``out_dir``: where to write (default ``default_out_dir(session_dir)``; never inside the session).
+    ``overwrite``: replace an earlier calibration there. Raises the errors of ``checks.py`` (ValueError
+    or OSError subclasses, one line each); problems that leave the cube usable become flags.
+    """
+    settings = settings or CalibrationSettings()
+    session = Path(session_dir).resolve()
+    timings: dict[str, float] = {}
+    clock = _stage_clock(timings)
+    with clock("verify"):
+        manifest = read_manifest(session)
+        rig = manifest.rig_config()
+        geo = rig.geometry
+        if geo.rectify_px % geo.cube_px:
+            raise CalibrationError(f"rig geometry: rectify_px {geo.rectify_px} is not a multiple of cube_px {geo.cube_px}")
+        out = _output_dir(session, out_dir, overwrite)
+        dark_record, bands = select_frames(manifest, rig, settings.dark_frame)
+        paths = verify_files(session, manifest.frames)
+        roi = settings.gray_card_roi_px or geo.gray_card_roi_px
+        if settings.gray_card and roi is None:
+            raise CalibrationError(
+                f"{session}: the rig in the manifest has no geometry.gray_card_roi_px; give the card's region "
+                "(calibration setting gray_card_roi_px, or --gray-card-roi x0,y0,x1,y1) or switch the gray card off (--no-gray-card)"
+            )
+    total = len(bands) + 3
+    done = 1
+    _report(progress, done, total, "frames verified")
+    wavelengths = [b.wavelength_nm for b in bands]
+    ref_index = _reference_band(wavelengths, settings.align_reference_nm)
+    with clock("decode"):
+        dark = read_raw(paths[dark_record.file], settings.saturation_margin) if settings.dark_frame else None
+    dark_sp = dark.superpixel() if dark is not None else None
+
+    flags: list[Flag] = []
+    per_band, rectified, valid_maps, thumbs = [], [], [], []
+    for bf in bands:
+        w = bf.wavelength_nm
+        with clock("decode"):
+            ref = read_raw(paths[bf.reference.file], settings.saturation_margin)
+            skin = read_raw(paths[bf.skin.file], settings.saturation_margin)
+        for frame in (ref, skin):
+            if dark is not None and frame.shape != dark.shape:
+                raise CalibrationError(
+                    f"{frame.path}: {frame.shape[1]}×{frame.shape[0]} px, the black frame {dark.shape[1]}×{dark.shape[0]}"
+                )
+        if ref.shape != skin.shape:
+            raise CalibrationError(f"{skin.path}: {skin.shape[1]}×{skin.shape[0]} px, its reference {ref.shape[1]}×{ref.shape[0]}")
+        with clock("corrections"):
+            s_img = subtract_dark(skin.superpixel(), dark_sp)
+            f_img = subtract_dark(ref.superpixel(), dark_sp)
+            centroid = cell_centroid(ref.values if dark is None else ref.values - dark.values)
+            sat_skin, sat_ref = skin.superpixel_saturated(), ref.superpixel_saturated()
+            low = settings.underexposure_level * 4.0
+            under = (s_img < low * skin.full_scale_dn) | (f_img < low * ref.full_scale_dn)
+            box = roi_to_superpixels(roi, s_img.shape, settings.gray_card_inset) if roi is not None else None
+            gray_ref = gray_skin = None
+            if settings.gray_card:
+                gray_ref = gray_card_level(f_img, box, sat_ref, str(ref.path))
+                gray_skin = gray_card_level(s_img, box, sat_skin, str(skin.path))
+            factors = band_factors(
+                settings, rig, w, gray_reference=gray_ref, gray_skin=gray_skin,
+                exposure_reference=bf.reference.exposure, exposure_skin=bf.skin.exposure,
+            )
+        with clock("window"):
+            win = find_window(
+                s_img, exclude=[box] if box is not None else [], min_area_fraction=settings.window_min_area_fraction,
+                max_ring_ratio=settings.window_max_ring_ratio, edge_model=settings.window_edge_model, name=str(skin.path),
+            )
+        with clock("corrections"):
+            inside = np.zeros(s_img.shape, np.uint8)
+            cv2.fillConvexPoly(inside, np.round(win.corners * 16).astype(np.int32), 1, shift=4)
+            inside = inside.astype(bool)
+            sat = sat_skin | sat_ref
+            if not np.median(f_img[inside]) > np.median(s_img[inside]):
+                raise CalibrationError(
+                    f"{ref.path}: the reference is darker under the window than the skin ({np.median(f_img[inside]):.0f} "
+                    f"against {np.median(s_img[inside]):.0f} DN); is the Spectralon in place?"
+                )
+            flat = None if settings.flat_field else float(np.median(f_img[inside]))
+            refl, defined = reflectance_ratio(s_img, f_img, factors.scale, flat)
+            valid = defined & ~sat & ~under
+            sat_fraction = float(np.mean(sat[inside]))
+            under_fraction = float(np.mean((under & ~sat)[inside]))
+        with clock("rectify"):
+            rectified.append(rectify(refl, win.corners, geo.rectify_px, settings.interpolation))
+            valid_maps.append(rectify(valid.astype(np.float32), win.corners, geo.rectify_px, "linear"))
+        flags += exposure_flags(w, sat_fraction, under_fraction, settings)
+        if settings.gray_card:
+            flags += gray_card_flags(w, factors.flash_factor, settings)
+        if settings.window_edge_model and win.model_sides < 4:
+            failed = 4 - win.model_sides
+            flags.append(Flag("edge_model", w, f"{w:g} nm: edge model failed on {failed} window side(s); derivative peaks used", failed))
+        thumbs.append(thumbnail(s_img, win.corners, box))
+        per_band.append(
+            {
+                "wavelength_nm": w,
+                "skin_file": bf.skin.file,
+                "reference_file": bf.reference.file,
+                "exposure": {"skin": bf.skin.exposure.model_dump(), "reference": bf.reference.exposure.model_dump()},
+                **factors.as_dict(),
+                "gray_card_dn": None if gray_ref is None else {"reference": gray_ref, "skin": gray_skin},
+                "window_corners_px": superpixel_to_raw_xy(win.corners, centroid).tolist(),
+                "cell_centroid_px": list(centroid),
+                "window_edge_rms_px": 2.0 * win.edge_rms_px,
+                "window_blur_px": _finite(2.0 * win.blur_px),
+                "saturated_fraction": sat_fraction,
+                "underexposed_fraction": under_fraction,
+            }
+        )
+        done += 1
+        _report(progress, done, total, f"{w:g} nm calibrated")
+
+    stack, vstack = np.stack(rectified), np.stack(valid_maps)
+    per_rect = geo.cube_px / geo.rectify_px
+    with clock("align"):
+        shifts = np.zeros((len(bands), 2))
+        correlation = np.ones(len(bands))
+        if settings.align_bands and len(bands) > 1:
+            al = align_bands(
+                stack, ref_index, valid=vstack >= 0.999, motion=settings.align_motion, border=settings.align_border,
+                max_shift_px=settings.max_alignment_px / per_rect,
+            )
+            stack = apply_alignment(stack, al, settings.interpolation)
+            vstack = apply_alignment(vstack, al, "linear")
+            shifts, correlation = al.shifts_px * per_rect, al.correlation
+            flags += alignment_flags(wavelengths, shifts, al.converged, settings)
+    done += 1
+    _report(progress, done, total, "bands aligned")
+    with clock("rectify"):
+        factor = geo.rectify_px // geo.cube_px
+        cube_r = box_filter(stack, factor).astype(np.float32)
+        mask = (box_filter(vstack, factor) >= 0.999).all(axis=0)
+        m = settings.edge_margin_px
+        if m:
+            mask[:m], mask[-m:], mask[:, :m], mask[:, -m:] = False, False, False, False
+    for k, entry in enumerate(per_band):
+        entry["alignment_shift_px"] = [_finite(v) for v in shifts[k]]
+        entry["alignment_correlation"] = _finite(correlation[k])
+        entry["snr"] = _finite(_snr(cube_r[k], mask))
+        entry["median_reflectance"] = _finite(float(np.median(cube_r[k][mask])) if mask.any() else float("nan"))
+
+    mm = geo.window_mm / geo.cube_px
+    meta = {
+        "session": str(session),
+        "camera_angle_deg": rig.camera.angle_deg,
+        "window_mm": geo.window_mm,
+        "window_corners_px": {f"{e['wavelength_nm']:g}": e["window_corners_px"] for e in per_band},
+        "alignment_shift_px": {f"{e['wavelength_nm']:g}": e["alignment_shift_px"] for e in per_band},
+        "reference_band_nm": wavelengths[ref_index],
+        "settings": settings.model_dump(mode="json"),
+        "calibration": REPORT_NAME,
+    }
+    cube = Cube(torch.from_numpy(cube_r), torch.tensor(wavelengths, dtype=torch.float64), torch.from_numpy(mask), mm, meta)
+    report = {
+        "session": str(session),
+        "software_version": _version(),
+        "created": now_iso(),
+        "rig": rig.name,
+        "camera_angle_deg": rig.camera.angle_deg,
+        "window_mm": geo.window_mm,
+        "rectify_px": geo.rectify_px,
+        "cube_px": geo.cube_px,
+        "mm_per_pixel": mm,
+        "reference_band_nm": wavelengths[ref_index],
+        "mask_valid_fraction": float(mask.mean()),
+        "bands": per_band,
+        "flags": [f.as_dict() for f in flags],
+        "settings": settings.model_dump(mode="json"),
+        "outputs": {"cube": CUBE_NAME, "contact_sheet": SHEET_NAME},
+    }
+    with clock("write"):
+        out.mkdir(parents=True, exist_ok=True)
+        cube_path = write_cube(out / CUBE_NAME, cube)
+        sheet = write_contact_sheet(
+            out / SHEET_NAME, wavelengths, thumbs, cube_r, mask,
+            [_caption(e) for e in per_band], [any(f.band_nm == w for f in flags) for w in wavelengths],
+            f"{session.name}: {len(bands)} bands, {len(flags)} flag(s), {mask.mean():.0%} of the window valid",
+        )
+    report["timings_s"] = {**{k: round(v, 4) for k, v in timings.items()}, "total": round(sum(timings.values()), 4)}
+    report_path = _write_json(out / REPORT_NAME, report)
+    _report(progress, total, total, f"written to {out}")
+    return CalibrationResult(cube, out, cube_path, report_path, sheet, report, flags, report["timings_s"])
+
+
+def _output_dir(session: Path, out_dir: str | Path | None, overwrite: bool) -> Path:
+    out = default_out_dir(session) if out_dir is None else Path(out_dir).resolve()
+    if out == session or session in out.parents:
+        raise CalibrationError(f"{out}: output would be written inside the session folder {session}; choose another -o")
+    existing = [n for n in (CUBE_NAME, REPORT_NAME, SHEET_NAME) if (out / n).exists()]
+    if existing and not overwrite:
+        raise FileExistsError(f"{out}: already holds a calibration ({', '.join(existing)}); use --force to replace it")
+    return out
+
+
+def _reference_band(wavelengths: list[float], chosen: Optional[float]) -> int:
+    if chosen is None:
+        return len(wavelengths) // 2
+    for k, w in enumerate(wavelengths):
+        if abs(w - chosen) < 1e-6:
+            return k
+    raise CalibrationError(f"align_reference_nm {chosen:g} is not a band of the rig ({', '.join(f'{w:g}' for w in wavelengths)})")
+
+
+def _snr(band: np.ndarray, mask: np.ndarray) -> float:
+    """Median over the noise σ of Immerkær's estimator ("Fast noise variance estimation", CVIU 1996):
+    σ = √(π/2) / 6 · mean |I ∗ N|, N = [[1, −2, 1], [−2, 4, −2], [1, −2, 1]], over valid 3×3 neighbourhoods.
+    On the cube grid, after resampling: texture finer than a few pixels counts as noise (a lower bound)."""
+    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    if inner.sum() < 16:
+        return float("nan")
+    response = cv2.filter2D(band.astype(np.float32), -1, kernel, borderType=cv2.BORDER_REPLICATE)
+    sigma = math.sqrt(math.pi / 2) / 6.0 * float(np.mean(np.abs(response[inner])))
+    return float(np.median(band[mask])) / sigma if sigma > 0 else float("inf")
+
+
+def _caption(entry: dict) -> str:
+    dx, dy = entry["alignment_shift_px"]
+    shift = "—" if dx is None else f"({dx:+.2f}, {dy:+.2f})"
+    snr = "—" if entry["snr"] is None else f"{entry['snr']:.0f}"
+    return f"flash ×{entry['flash_factor']:.3f}  shift {shift}\nSNR {snr}  sat {entry['saturated_fraction']:.1%}"
+
+
+def _finite(value) -> Optional[float]:
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _report(progress: Optional[ProgressFn], done: int, total: int, message: str) -> None:
+    if progress is not None:
+        progress(done, total, message)
+
+
+def _stage_clock(timings: dict[str, float]):
+    @contextmanager
+    def clock(stage: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - start
+
+    return clock
+
+
+def _write_json(path: Path, data: dict) -> Path:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".calibration-", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2, allow_nan=False)
+            f.write("\n")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
