@@ -317,7 +317,11 @@ class SimulatedBench:
             x, y = sample_points(geo, s.camera.supersample, rows, self.device)
             if self.target == "skin":
                 px, py = to_subject(x, y, shift_mm, rotation_deg)
-                inside = ((px.abs() <= half) & (py.abs() <= half)).to(torch.float32)
+                # the share of each sample's cell inside the window, not a yes/no at its centre: a
+                # point test draws the tape's edge as a staircase of 1/supersample px steps
+                fx, fy = self._sample_footprint_mm(rows)
+                inside = ((half - px.abs()) / fx + 0.5).clamp(0.0, 1.0) * ((half - py.abs()) / fy + 0.5).clamp(0.0, 1.0)
+                inside = inside.to(torch.float32)
                 value = bilinear(skin, px, py, self.truth_mm_per_pixel) * inside + s.scene.tape_reflectance * (1.0 - inside)
             else:
                 value = torch.full((3, *x.shape), flat, dtype=torch.float32, device=self.device)
@@ -325,6 +329,18 @@ class SimulatedBench:
             value = value * (1.0 - card) + rig.targets.gray_card_reflectance * card
             out[:, rows] = value.mean(dim=1)
         return out
+
+
+    def _sample_footprint_mm(self, rows: slice) -> tuple[torch.Tensor, torch.Tensor]:
+        """Extent along the skin plane's x and y of one sub-pixel sample's cell, per raw pixel of ``rows``
+        ``(R, W)``: the cell is a small parallelogram under the camera's perspective."""
+        geo, n = self.geometry, self.settings.camera.supersample
+        v = torch.arange(rows.start, rows.stop, dtype=torch.float64, device=self.device)[:, None]
+        u = torch.arange(geo.width_px, dtype=torch.float64, device=self.device)[None, :]
+        x0, y0 = geo.unproject(u, v)
+        xu, yu = geo.unproject(u + 1.0, v)
+        xv, yv = geo.unproject(u, v + 1.0)
+        return ((xu - x0).abs() + (xv - x0).abs()) / n, ((yu - y0).abs() + (yv - y0).abs()) / n
 
 
 def _frame_seed(seed: int, state: str, position: int, count: int) -> int:

@@ -6,16 +6,17 @@
 |---|---|
 | no or invalid manifest | ``acquire.manifest.ManifestError`` |
 | a file the manifest names is missing | ``FrameMissingError`` (an ``OSError``) |
+| a file name leaving the session folder (in the manifest, or a link) | ``ManifestError``, ``CalibrationError`` |
 | a frame's SHA-256 differs from the manifest | ``ChecksumMismatchError`` |
 | a rig band lacks its reference or skin frame; no black frame (when used) | ``BandMissingError`` |
 | a frame taken at another filter position than the rig's band | ``CalibrationError`` |
 | a corrupt, truncated or non-Bayer raw | ``RawDecodeError`` |
 | frames of different sizes | ``CalibrationError`` |
 | no window, or more than one candidate, in a skin frame | ``WindowNotFoundError`` |
-| a reference frame darker under the window than the skin (no Spectralon there) | ``CalibrationError`` |
+| a reference frame darker than the skin where the skin frame is brightest (no Spectralon there) | ``CalibrationError`` |
 | gray card saturated, dark, outside the image, or its region unknown (when used) | ``CalibrationError`` |
 
-Each of these leaves nothing to calibrate, or would make a whole band silently wrong: a frame that is
+Every message names the file and what it is (``skin frame, 430 nm``). Each of these leaves nothing to calibrate, or would make a whole band silently wrong: a frame that is
 not the one recorded, a band without its flat field, a scale from a clipped card.
 
 **Flags** (calibration goes on; recorded in ``calibration.json`` under ``flags`` and printed in the
@@ -38,7 +39,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Iterable, Optional
+from typing import Iterable, Optional, Sequence
 
 import numpy as np
 
@@ -47,11 +48,15 @@ from ..acquire.rig import RigConfig
 from .errors import BandMissingError, CalibrationError, ChecksumMismatchError, FrameMissingError
 from .settings import CalibrationSettings
 
+_BRIGHTEST_SHARE = 0.2  # of the skin frame: the window, wherever it lies
+
 __all__ = [
     "BandFrames",
     "Flag",
     "alignment_flags",
+    "check_reference",
     "exposure_flags",
+    "frame_label",
     "gray_card_flags",
     "select_frames",
     "verify_files",
@@ -81,18 +86,29 @@ class BandFrames:
     skin: FrameRecord
 
 
+def frame_label(frame: FrameRecord) -> str:
+    """What a frame is, for messages: ``"skin frame, 430 nm"``, ``"black frame"``."""
+    return "black frame" if frame.band_nm is None else f"{frame.role} frame, {frame.band_nm:g} nm"
+
+
 def verify_files(session: Path, frames: Iterable[FrameRecord]) -> dict[str, Path]:
     """Every frame's file exists in ``session`` and matches its SHA-256; returns name → path.
 
-    Raises ``FrameMissingError`` listing the missing files, or ``ChecksumMismatchError`` naming the
-    first file whose content differs from the manifest's record.
+    Raises ``FrameMissingError`` listing the missing files, ``CalibrationError`` for a file that is a
+    link leading out of the session folder, or ``ChecksumMismatchError`` naming the first file whose
+    content differs from the manifest's record.
     """
     paths, missing = {}, []
     frames = list(frames)
+    root = session.resolve()
     for f in frames:
         path = session / safe_member(f.file)
         if not path.is_file():
-            missing.append(f.file)
+            missing.append(f"{f.file} ({frame_label(f)})")
+        elif root not in path.resolve().parents:
+            raise CalibrationError(
+                f"{path} ({frame_label(f)}): leads out of the session folder to {path.resolve()}; a session's frames must lie in it"
+            )
         paths[f.file] = path
     if missing:
         raise FrameMissingError(f"{session}: {len(missing)} file(s) named in the manifest are missing: {', '.join(missing)}")
@@ -100,9 +116,28 @@ def verify_files(session: Path, frames: Iterable[FrameRecord]) -> dict[str, Path
         actual = file_sha256(paths[f.file])
         if actual != f.sha256.lower():
             raise ChecksumMismatchError(
-                f"{paths[f.file]}: SHA-256 {actual[:12]}… does not match the manifest's {f.sha256[:12]}… (file changed or corrupt)"
+                f"{paths[f.file]} ({frame_label(f)}): SHA-256 {actual[:12]}… does not match the manifest's "
+                f"{f.sha256[:12]}… (file changed or corrupt)"
             )
     return paths
+
+
+def check_reference(skin: np.ndarray, reference: np.ndarray, exclude: Sequence[Sequence[int]], name: str) -> None:
+    """Refuse a reference frame that is not brighter than the skin frame where the skin frame is
+    brightest (the window): the Spectralon, fully reflecting, outshines any skin. ``skin`` and
+    ``reference`` ``(H, W)``: dark-subtracted superpixels; ``exclude``: boxes ``[x0, y0, x1, y1]`` (the
+    gray card, the same in both). Raises ``CalibrationError`` naming ``name`` (the reference)."""
+    allowed = np.ones(skin.shape, bool)
+    for x0, y0, x1, y1 in exclude:
+        allowed[y0:y1, x0:x1] = False
+    s, f = skin[allowed], reference[allowed]
+    bright = s >= np.percentile(s, 100.0 * (1.0 - _BRIGHTEST_SHARE))
+    level_s, level_f = float(np.median(s[bright])), float(np.median(f[bright]))
+    if not level_f > level_s:
+        raise CalibrationError(
+            f"{name}: the reference is darker under the window than the skin ({level_f:.0f} against {level_s:.0f} DN "
+            f"over the brightest {_BRIGHTEST_SHARE:.0%} of the skin frame); is the Spectralon in place?"
+        )
 
 
 def select_frames(manifest: Manifest, rig: RigConfig, need_dark: bool) -> tuple[Optional[FrameRecord], list[BandFrames]]:

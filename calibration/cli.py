@@ -77,20 +77,22 @@ def _print_summary(report: dict, result) -> None:
 
     console = Console()
     table = Table(title=f"{Path(report['session']).name}: {len(report['bands'])} bands → {result.out_dir}")
-    for col in ("band nm", "flash ×", "shift px (cube)", "SNR", "saturated", "under-exp.", "median R"):
+    for col in ("band nm", "flash ×", "shift px (cube)*", "SNR", "saturated", "under-exp.", "median R"):
         table.add_column(col, justify="right")
     for b in report["bands"]:
         dx, dy = b["alignment_shift_px"]
         table.add_row(
             f"{b['wavelength_nm']:g}",
             f"{b['flash_factor']:.3f}",
-            "—" if dx is None else f"{dx:+.2f}, {dy:+.2f}",
+            "—" if dx is None else f"{dx:+.2f}, {dy:+.2f}" + (" applied" if b["alignment_applied"] else ""),
             "—" if b["snr"] is None else f"{b['snr']:.0f}",
             f"{b['saturated_fraction']:.2%}",
             f"{b['underexposed_fraction']:.2%}",
             "—" if b["median_reflectance"] is None else f"{b['median_reflectance']:.3f}",
         )
     console.print(table)
+    shift = report["settings"]["align_min_shift_px"]
+    console.print(f"* measured by ECC against {report['reference_band_nm']:g} nm; applied only from {shift:g} cube px on")
     for f in report["flags"]:
         console.print(f"[yellow]flag[/] {f['code']}: {f['message']}")
     t = report["timings_s"]

@@ -18,7 +18,9 @@ so the sum does not depend on the pattern's phase (RGGB, GBRG, …).
 Where a superpixel samples the scene depends on the band: its value weighs the four photosites by their
 channel's sensitivity, so under blue light it leans towards the blue photosite. ``cell_centroid`` gives
 that point from a flat frame (the Spectralon reference); positions found in superpixels convert back to
-raw photosites through it (up to 0.4 px off otherwise, measured on our synthetic sessions).
+raw photosites through it (up to 0.4 px off otherwise, measured on our synthetic sessions). The
+footprint is lopsided too — under blue light mostly the one blue photosite — and ``cell_weights`` gives
+it to the window's edge model.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import numpy as np
 
 from .errors import RawDecodeError
 
-__all__ = ["RawImage", "cell_centroid", "read_raw", "superpixel", "superpixel_any"]
+__all__ = ["RawImage", "cell_centroid", "cell_weights", "read_raw", "superpixel", "superpixel_any"]
 
 
 @dataclass(frozen=True)
@@ -68,29 +70,31 @@ class RawImage:
         return superpixel_any(self.saturated)
 
 
-def read_raw(path: str | Path, saturation_margin: float = 0.01) -> RawImage:
+def read_raw(path: str | Path, saturation_margin: float = 0.01, label: str | None = None) -> RawImage:
     """Decode a Bayer raw file (DNG, CR2, NEF, …) into linear values above black.
 
     ``saturation_margin``: a photosite whose raw value is at or above ``white − margin · white`` is
-    saturated. Raises ``FileNotFoundError`` if the file is absent and ``RawDecodeError`` (naming the
+    saturated. ``label``: what the frame is (e.g. ``"skin frame, 430 nm"``), put beside the file's name
+    in errors. Raises ``FileNotFoundError`` if the file is absent and ``RawDecodeError`` (naming the
     file) if it is corrupt, truncated, or not a 2×2 Bayer raw.
     """
     import rawpy  # noqa: PLC0415 (heavy; only decoding needs it)
 
     path = Path(path)
+    name = f"{path} ({label})" if label else str(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: raw file not found")
+        raise FileNotFoundError(f"{name}: raw file not found")
     try:
         with rawpy.imread(str(path)) as raw:
             pattern = raw.raw_pattern
             if pattern is None or np.asarray(pattern).shape != (2, 2):
                 shape = None if pattern is None else np.asarray(pattern).shape
-                raise RawDecodeError(f"{path}: not a 2×2 Bayer raw (CFA pattern {shape}); calibration needs a Bayer sensor")
+                raise RawDecodeError(f"{name}: not a 2×2 Bayer raw (CFA pattern {shape}); calibration needs a Bayer sensor")
             pattern = np.asarray(pattern)
             desc = raw.color_desc.decode("ascii", "replace")
             cfa = "".join(desc[int(c)] for c in pattern.reshape(-1))
             if sorted(cfa) != sorted("RGGB"):
-                raise RawDecodeError(f"{path}: CFA cell {cfa!r} is not a Bayer R/G/G/B cell")
+                raise RawDecodeError(f"{name}: CFA cell {cfa!r} is not a Bayer R/G/G/B cell")
             black_by_colour = np.asarray(raw.black_level_per_channel, dtype=np.float64)
             values = raw.raw_image_visible.astype(np.float32)
             colours = np.array(raw.raw_colors_visible, copy=True)
@@ -100,15 +104,15 @@ def read_raw(path: str | Path, saturation_margin: float = 0.01) -> RawImage:
     except Exception as exc:  # LibRaw reports corrupt and truncated files with several exception types
         message = exc.args[0].decode(errors="replace") if exc.args and isinstance(exc.args[0], bytes) else str(exc)
         raise RawDecodeError(
-            f"{path}: cannot decode raw file ({type(exc).__name__}: {message or 'no detail'}); corrupt or truncated?"
+            f"{name}: cannot decode raw file ({type(exc).__name__}: {message or 'no detail'}); corrupt or truncated?"
         ) from None
     if values.ndim != 2 or values.shape[0] < 2 or values.shape[1] < 2:
-        raise RawDecodeError(f"{path}: raw image has shape {values.shape}, expected a 2-D mosaic")
+        raise RawDecodeError(f"{name}: raw image has shape {values.shape}, expected a 2-D mosaic")
     if colours.max() >= black_by_colour.size:
-        raise RawDecodeError(f"{path}: colour index {int(colours.max())} has no black level")
+        raise RawDecodeError(f"{name}: colour index {int(colours.max())} has no black level")
     black = black_by_colour[colours]
     if not white > float(black.max()):
-        raise RawDecodeError(f"{path}: white level {white:g} is not above the black level {float(black.max()):g}")
+        raise RawDecodeError(f"{name}: white level {white:g} is not above the black level {float(black.max()):g}")
     saturated = values >= white - saturation_margin * white
     values -= black.astype(np.float32)
     return RawImage(
@@ -138,14 +142,20 @@ def superpixel_any(mask: np.ndarray) -> np.ndarray:
     return m[0::2, 0::2] | m[0::2, 1::2] | m[1::2, 0::2] | m[1::2, 1::2]
 
 
-def cell_centroid(flat: np.ndarray) -> tuple[float, float]:
-    """Where in its 2×2 cell a superpixel of this band samples, ``(x, y)`` in photosites (0.5, 0.5 = the
-    cell's centre), from a flat frame's values above black ``(H, W)``: the photosite positions weighted by
-    their mean signal (each channel's sensitivity to the band)."""
+def cell_weights(flat: np.ndarray) -> np.ndarray:
+    """How much each position of the 2×2 cell weighs in a superpixel of this band ``(2, 2)`` (rows, then
+    columns of the cell; sum 1), from a flat frame's values above black ``(H, W)``: each position's mean
+    signal (its channel's sensitivity to the band). Equal weights where the frame holds no signal."""
     h, w = flat.shape[0] // 2 * 2, flat.shape[1] // 2 * 2
     weights = np.array([[np.mean(flat[dy:h:2, dx:w:2], dtype=np.float64) for dx in (0, 1)] for dy in (0, 1)])
     weights = np.clip(weights, 0.0, None)
     total = weights.sum()
-    if not total > 0:
-        return 0.5, 0.5
-    return float(weights[:, 1].sum() / total), float(weights[1, :].sum() / total)
+    return weights / total if total > 0 else np.full((2, 2), 0.25)
+
+
+def cell_centroid(flat: np.ndarray) -> tuple[float, float]:
+    """Where in its 2×2 cell a superpixel of this band samples, ``(x, y)`` in photosites (0.5, 0.5 = the
+    cell's centre), from a flat frame's values above black ``(H, W)``: the photosite positions weighted by
+    ``cell_weights``."""
+    weights = cell_weights(flat)
+    return float(weights[:, 1].sum()), float(weights[1, :].sum())

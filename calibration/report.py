@@ -2,7 +2,9 @@
 
 Per band, a column: above, the skin frame (superpixels, dark-subtracted) with the detected window
 outlined in red and the gray card's region in cyan; below, the calibrated band on one common
-reflectance scale, masked pixels in magenta. A band whose title is red carries a flag.
+reflectance scale (viridis, the scale bar on the right), masked pixels in magenta, and the band's
+caption. A band whose title is red carries a flag. Drawn with OpenCV (a few milliseconds; a
+matplotlib figure took 0.5–1.4 s, a quarter of a small calibration).
 """
 
 from __future__ import annotations
@@ -17,6 +19,10 @@ import numpy as np
 __all__ = ["Thumbnail", "thumbnail", "write_contact_sheet"]
 
 _THUMB_PX = 320
+_PANEL_PX = 240  # width of a band's column
+_GAP_PX = 12
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+_RED, _CYAN, _MAGENTA, _BLACK, _WHITE = (0, 0, 220), (220, 200, 0), (255, 0, 255), (0, 0, 0), (255, 255, 255)
 
 
 @dataclass(frozen=True)
@@ -39,6 +45,37 @@ def thumbnail(image: np.ndarray, corners: np.ndarray, card: Optional[Sequence[in
     return Thumbnail(small, scaled, box)
 
 
+def _ascii(text: str) -> str:
+    """OpenCV's Hershey fonts draw ASCII only."""
+    return text.encode("ascii", "replace").decode("ascii")
+
+
+def _text(canvas: np.ndarray, text: str, x: int, y: int, scale: float = 0.45, colour=_BLACK) -> None:
+    cv2.putText(canvas, _ascii(text), (x, y), _FONT, scale, colour, 1, cv2.LINE_AA)
+
+
+def _frame_panel(t: Thumbnail) -> np.ndarray:
+    """The skin frame in gray, window and card drawn on it, ``_PANEL_PX`` wide ``(h, w, 3)`` uint8."""
+    lo, hi = np.percentile(t.image, [1, 99.5])
+    gray = np.clip((t.image - lo) / (hi - lo if hi > lo else 1.0) * 255.0, 0, 255).astype(np.uint8)
+    s = _PANEL_PX / gray.shape[1]
+    panel = cv2.cvtColor(cv2.resize(gray, (_PANEL_PX, max(1, round(gray.shape[0] * s))), interpolation=cv2.INTER_AREA), cv2.COLOR_GRAY2BGR)
+    corners = np.round(((t.corners + 0.5) * s - 0.5) * 16).astype(np.int32)
+    cv2.polylines(panel, [corners], True, _RED, 1, cv2.LINE_AA, shift=4)
+    if t.card is not None:
+        x0, y0, x1, y1 = (int(round((v + 0.5) * s - 0.5)) for v in t.card)
+        cv2.rectangle(panel, (x0, y0), (x1, y1), _CYAN, 1)
+    return panel
+
+
+def _band_panel(band: np.ndarray, mask: np.ndarray, vmax: float) -> np.ndarray:
+    """A cube band in viridis on ``[0, vmax]``, masked pixels magenta, ``_PANEL_PX`` square."""
+    level = np.clip(np.nan_to_num(band) / vmax * 255.0, 0, 255).astype(np.uint8)
+    rgb = cv2.applyColorMap(level, cv2.COLORMAP_VIRIDIS)
+    rgb[~mask] = _MAGENTA
+    return cv2.resize(rgb, (_PANEL_PX, _PANEL_PX), interpolation=cv2.INTER_NEAREST)
+
+
 def write_contact_sheet(
     path: Path,
     wavelengths_nm: Sequence[float],
@@ -49,40 +86,37 @@ def write_contact_sheet(
     flagged: Sequence[bool],
     title: str,
 ) -> Path:
-    """Write the PNG: ``cube`` ``(L, H, W)`` reflectance, ``mask`` ``(H, W)`` bool; one caption per band."""
-    import matplotlib  # noqa: PLC0415
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-    from matplotlib.patches import Polygon, Rectangle  # noqa: PLC0415
-
+    """Write the PNG: ``cube`` ``(L, H, W)`` reflectance, ``mask`` ``(H, W)`` bool; one caption (lines
+    separated by newlines) per band."""
     n = len(wavelengths_nm)
     valid = cube[:, mask] if mask.any() else cube.reshape(n, -1)
     vmax = float(np.percentile(valid, 99.5)) if valid.size else 1.0
     vmax = vmax if np.isfinite(vmax) and vmax > 0 else 1.0
-    fig, axes = plt.subplots(2, n, figsize=(2.2 * n + 1.2, 5.0), squeeze=False, constrained_layout=True)
-    overlay = np.zeros((*mask.shape, 4))
-    overlay[~mask] = (1.0, 0.0, 1.0, 0.8)
-    im = None
+    tops = [_frame_panel(t) for t in thumbs]
+    top_h = max(p.shape[0] for p in tops)
+    lines = max(len(c.split("\n")) for c in captions) if captions else 0
+    title_h, label_h, caption_h, bar_w = 34, 22, 8 + 18 * lines, 90
+    height = title_h + label_h + top_h + _GAP_PX + _PANEL_PX + caption_h
+    width = _GAP_PX + n * (_PANEL_PX + _GAP_PX) + bar_w
+    canvas = np.full((height, width, 3), 255, np.uint8)
+    _text(canvas, title, _GAP_PX, 22, 0.55)
     for k in range(n):
-        top, bottom = axes[0, k], axes[1, k]
-        t = thumbs[k]
-        lo, hi = np.percentile(t.image, [1, 99.5])
-        top.imshow(t.image, cmap="gray", vmin=lo, vmax=hi if hi > lo else lo + 1)
-        top.add_patch(Polygon(t.corners, closed=True, fill=False, edgecolor="red", linewidth=1.0))
-        if t.card is not None:
-            x0, y0, x1, y1 = t.card
-            top.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, edgecolor="cyan", linewidth=0.8))
-        top.set_title(f"{wavelengths_nm[k]:g} nm", color="red" if flagged[k] else "black", fontsize=9)
-        im = bottom.imshow(cube[k], cmap="viridis", vmin=0.0, vmax=vmax)
-        bottom.imshow(overlay)
-        bottom.set_title(captions[k], fontsize=7, color="red" if flagged[k] else "black")
-        for ax in (top, bottom):
-            ax.set_xticks([])
-            ax.set_yticks([])
-    fig.colorbar(im, ax=axes[1, :].tolist(), shrink=0.8, label="reflectance")
-    fig.suptitle(title, fontsize=10)
+        x = _GAP_PX + k * (_PANEL_PX + _GAP_PX)
+        y = title_h + label_h
+        _text(canvas, f"{wavelengths_nm[k]:g} nm", x, y - 6, 0.5, _RED if flagged[k] else _BLACK)
+        canvas[y : y + tops[k].shape[0], x : x + _PANEL_PX] = tops[k]
+        y += top_h + _GAP_PX
+        canvas[y : y + _PANEL_PX, x : x + _PANEL_PX] = _band_panel(cube[k], mask, vmax)
+        for j, line in enumerate(captions[k].split("\n")):
+            _text(canvas, line, x, y + _PANEL_PX + 18 * (j + 1), 0.42, _RED if flagged[k] else _BLACK)
+    # the common reflectance scale beside the bands
+    x, y = width - bar_w + 8, title_h + label_h + top_h + _GAP_PX
+    ramp = np.linspace(255, 0, _PANEL_PX).astype(np.uint8)[:, None].repeat(16, axis=1)
+    canvas[y : y + _PANEL_PX, x : x + 16] = cv2.applyColorMap(ramp, cv2.COLORMAP_VIRIDIS)
+    _text(canvas, f"{vmax:.2f}", x + 20, y + 10, 0.4)
+    _text(canvas, "0", x + 20, y + _PANEL_PX, 0.4)
+    _text(canvas, "R", x + 20, y + _PANEL_PX // 2, 0.4)
     path = Path(path)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    if not cv2.imwrite(str(path), canvas):
+        raise OSError(f"{path}: cannot write the contact sheet")
     return path

@@ -104,6 +104,14 @@ class CalibrationSettings(BaseModel):
         0.06, ge=0, lt=0.4, description="Fraction of the side along the window edge that the alignment ignores."
     )
 
+    align_min_shift_px: float = Field(
+        0.5,
+        ge=0,
+        description=(
+            "A measured shift below this (cube pixels) is reported, not applied: each window is cut from its own frame, "
+            "which registers the bands better than ECC across bands of different contrast (0.1–0.2 px); 0: apply every shift."
+        ),
+    )
     max_alignment_px: float = Field(
         4.0, gt=0, description="A shift beyond this (cube pixels) is not applied: the band stays as rectified, flagged."
     )

@@ -46,7 +46,7 @@ def _replace_frame(session, name, data, synth):
 
 def test_missing_file_is_named(session_copy, tmp_path):
     (session_copy.path / "skin_550.dng").unlink()
-    with pytest.raises(FrameMissingError, match="skin_550.dng"):
+    with pytest.raises(FrameMissingError, match=r"skin_550.dng \(skin frame, 550 nm\)"):
         calibrate_session(session_copy.path, tmp_path / "out")
     assert not (tmp_path / "out").exists()
 
@@ -56,7 +56,7 @@ def test_checksum_mismatch_is_named(session_copy, tmp_path):
     data = bytearray(path.read_bytes())
     data[-100] ^= 0xFF
     path.write_bytes(bytes(data))
-    with pytest.raises(ChecksumMismatchError, match="reference_430.dng: SHA-256"):
+    with pytest.raises(ChecksumMismatchError, match=r"reference_430.dng \(reference frame, 430 nm\): SHA-256"):
         calibrate_session(session_copy.path, tmp_path / "out")
 
 
@@ -88,7 +88,7 @@ def test_truncated_raw_with_a_matching_checksum_is_named(session_copy, tmp_path)
                 f.sha256 = file_sha256(path)
 
     _edit_manifest(session_copy.path, record)
-    with pytest.raises(RawDecodeError, match="skin_430.dng: cannot decode"):
+    with pytest.raises(RawDecodeError, match=r"skin_430.dng \(skin frame, 430 nm\): cannot decode"):
         calibrate_session(session_copy.path, tmp_path / "out")
 
 
@@ -96,7 +96,7 @@ def test_skin_frame_without_a_window(session_copy, tmp_path, synth):
     scene = synth.render_scene(synth.RAW_SHAPE, homography=synth.camera_homography(synth.RAW_SHAPE, window_px=120), skin=0.03,
                                full_scale_dn=2600.0, gray_box=session_copy.gray_roi_raw)
     _replace_frame(session_copy.path, "skin_550.dng", synth.mosaic(scene.image, black=synth.BLACK), synth)
-    with pytest.raises(WindowNotFoundError, match="skin_550.dng: no window found"):
+    with pytest.raises(WindowNotFoundError, match=r"skin_550.dng \(skin frame, 550 nm\): no window found"):
         calibrate_session(session_copy.path, tmp_path / "out")
 
 
@@ -114,7 +114,7 @@ def test_gray_card_region_unknown_or_saturated(session_copy, tmp_path, synth):
     data = (raw.values + np.tile(raw.black_cell, (raw.shape[0] // 2, raw.shape[1] // 2))).astype(np.uint16)
     data[roi[1] : roi[3], roi[0] : roi[2]] = 4095
     _replace_frame(session_copy.path, "reference_550.dng", data, synth)
-    with pytest.raises(CalibrationError, match="reference_550.dng: 100.0% of the gray card is saturated"):
+    with pytest.raises(CalibrationError, match=r"reference_550.dng \(reference frame, 550 nm\): 100.0% of the gray card is saturated"):
         calibrate_session(session_copy.path, tmp_path / "out", CalibrationSettings(gray_card_roi_px=roi))
 
 
@@ -160,5 +160,5 @@ def test_reference_without_the_spectralon(session_copy, tmp_path, synth):
     skin = read_raw(session_copy.path / "skin_430.dng")
     data = (skin.values * 0.5 + np.tile(skin.black_cell, (skin.shape[0] // 2, skin.shape[1] // 2))).astype(np.uint16)
     _replace_frame(session_copy.path, "reference_670.dng", data, synth)
-    with pytest.raises(CalibrationError, match="reference_670.dng: the reference is darker under the window than the skin"):
+    with pytest.raises(CalibrationError, match=r"reference_670.dng \(reference frame, 670 nm\): the reference is darker under the window than the skin"):
         calibrate_session(session_copy.path, tmp_path / "out")
