@@ -1,9 +1,28 @@
 """Reconstruction: chromophore parameters from measured reflectance.
 
-Today: point spectra fitted with the homogeneous model (``fit_spectra``). The per-pixel inverse
-rendering of reflectance cubes lands here with the reconstruction issue.
+- ``fit_spectra``: point spectra fitted with the homogeneous model (batched Levenberg–Marquardt).
+- ``fit_cube``: per-pixel inverse rendering of a reflectance cube with the heterogeneous renderer
+  (DWRR08 §6.3): five maps and a global scale, coarse-to-fine, with residuals, flags and
+  uncertainties; ``write_outputs`` writes maps.exr, fit.json, report.png and the resolved settings.
 """
 
+from .fit import FitEvent, MapFit, fit_cube
+from .optimizers import METHODS
+from .outputs import fit_summary, write_outputs
+from .settings import FitSettings, FitSettingsError, load_fit_settings
 from .spectrum_fit import PAPER_START, SpectrumFit, fit_spectra
 
-__all__ = ["PAPER_START", "SpectrumFit", "fit_spectra"]
+__all__ = [
+    "METHODS",
+    "PAPER_START",
+    "FitEvent",
+    "FitSettings",
+    "FitSettingsError",
+    "MapFit",
+    "SpectrumFit",
+    "fit_cube",
+    "fit_spectra",
+    "fit_summary",
+    "load_fit_settings",
+    "write_outputs",
+]

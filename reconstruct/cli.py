@@ -1,4 +1,4 @@
-"""Commands reconstruction contributes to ``skinlayers``: fit-spectrum."""
+"""Commands reconstruction contributes to ``skinlayers``: fit-spectrum, reconstruct."""
 
 from __future__ import annotations
 
@@ -130,6 +130,130 @@ def _plot_fits(names, wavelength_nm, measured, fitted, rms, path: Path) -> None:
     plt.close(fig)
 
 
+#: Iterations a level usually takes, per method (measured; only the ETA uses them).
+_EXPECTED_ITERATIONS = {"gn-hom": 15, "gn": 20, "adam": 150, "paper-fd": 300}
+
+
+def resolve_cube_path(source: Path) -> Path:
+    """A cube file as given; a calibrated folder's ``cube.exr``; or a session folder's cube, which
+    ``skinlayers calibrate`` writes beside it (``<SESSION>_calibrated/cube.exr``). Errors say what to do."""
+    from ..calibration.pipeline import default_out_dir  # noqa: PLC0415
+
+    if source.is_dir():
+        if (source / "cube.exr").is_file():
+            return source / "cube.exr"
+        cube = default_out_dir(source) / "cube.exr"
+        if not cube.exists():
+            raise FileNotFoundError(
+                f"{source}: no calibrated cube at {cube}; run `skinlayers calibrate {source}` first"
+            )
+        return cube
+    if not source.exists():
+        raise FileNotFoundError(f"{source}: no such session folder or cube file")
+    return source
+
+
+def default_reconstruction_dir(source: Path, cube_path: Path) -> Path:
+    """``<SESSION>_reconstruction`` beside a session folder (the session is never written to), else
+    ``reconstruction/`` beside the cube."""
+    if source.is_dir() and not (source / "cube.exr").is_file():
+        resolved = source.resolve()
+        return resolved.parent / f"{resolved.name}_reconstruction"
+    return cube_path.parent / "reconstruction"
+
+
+def reconstruct(
+    source: Path = typer.Argument(..., help="A session folder (uses SESSION_calibrated/cube.exr beside it), a calibrated folder or a cube.exr."),
+    out: Optional[Path] = typer.Option(
+        None, "-o", "--out", help="Output folder (default: SESSION_reconstruction beside a session, else reconstruction/ beside the cube)."
+    ),
+    config: Optional[Path] = typer.Option(None, "--config", help="Fit settings YAML (configs/fit.yaml lists every key)."),
+    device: str = typer.Option("auto", "--device", help="cpu, cuda or auto (CUDA when available)."),
+    method: Optional[str] = typer.Option(None, "--method", help="gn-hom (default), gn, adam or paper-fd (the paper's baseline)."),
+    start: Optional[str] = typer.Option(None, "--start", help="homogeneous (default) or paper."),
+    force: bool = typer.Option(False, "--force", help="Overwrite the outputs of an earlier fit in the output folder."),
+) -> None:
+    """Fit chromophore maps to a reflectance cube by inverse rendering (DWRR08 §6.3).
+
+    Writes maps.exr (C_m, beta_m, C_he, C_bc, C_hd, residuals, flags, sigma_*), fit.json, report.png and
+    fit_settings.yaml. Example: skinlayers reconstruct my-session  (after skinlayers calibrate my-session)
+    """
+    from rich.console import Console  # noqa: PLC0415
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn  # noqa: PLC0415
+
+    from ..calibration.cube import read_cube  # noqa: PLC0415
+    from .fit import FitEvent, fit_cube  # noqa: PLC0415
+    from .outputs import write_outputs  # noqa: PLC0415
+    from .settings import load_fit_settings  # noqa: PLC0415
+
+    if device not in ("cpu", "cuda", "auto"):
+        raise ValueError(f"--device {device!r}: expected cpu, cuda or auto")
+    settings = load_fit_settings(config, method=method, start=start)
+    cube_path = resolve_cube_path(source)
+    out_dir = out or default_reconstruction_dir(source, cube_path)
+    if (out_dir / "fit.json").exists() and not force:
+        raise FileExistsError(f"{out_dir}: holds an earlier fit (fit.json); choose another -o or pass --force")
+    cube = read_cube(cube_path)
+    console = Console(stderr=True)
+    expected = _EXPECTED_ITERATIONS.get(settings.method, 20)
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+        TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=console, transient=False,
+    ) as bar:
+        task = bar.add_task("preparing", total=1.0)
+        done_before: list[float] = [0.0]
+
+        def on_event(event: FitEvent) -> None:
+            if event.stage == "tables":
+                bar.update(task, description=f"tables {event.level}/{event.levels} wavelengths (once, cached)")
+                return
+            if not event.pixels:
+                return
+            work = [p * expected for p in event.pixels]
+            total = float(sum(work))
+            base = float(sum(work[: event.level]))
+            if event.stage == "fit":
+                within = min(event.iteration, expected - 1) * event.pixels[event.level]
+                bar.update(task, total=total, completed=base + within,
+                           description=f"level {event.level + 1}/{event.levels} it {event.iteration} RMS {(2 * event.loss / max(event.pixels[event.level] * cube.shape[0], 1)) ** 0.5:.4f}")
+            elif event.stage == "level":
+                bar.update(task, total=total, completed=base + work[event.level])
+            elif event.stage == "start":
+                bar.update(task, total=total, completed=0.0, description=f"start: {settings.start}")
+            elif event.stage == "final":
+                bar.update(task, total=total, completed=total, description="residuals, flags, uncertainties")
+
+        fit = fit_cube(cube, settings, device=device, progress=on_event)
+    paths = write_outputs(fit, settings, out_dir, source=str(cube_path))
+    flags = {k: int(v) for k, v in _flag_counts(fit).items() if v}
+    console.print(
+        f"fit {fit.residual_rms.shape[0]}×{fit.residual_rms.shape[1]} px, {fit.wavelength_nm.numel()} bands, method {settings.method}: "
+        f"scale {fit.scale:.4f}, residual RMS {_visible_rms(fit):.4f}, {sum(level['iterations'] for level in fit.levels)} iterations, "
+        f"{fit.wall_s:.1f} s"
+    )
+    for note in fit.checks.notes:
+        console.print(f"note: {note}")
+    if flags:
+        console.print("flagged pixels: " + ", ".join(f"{k} {v}" for k, v in flags.items()))
+    for kind, path in paths.items():
+        typer.echo(f"{kind}: {path}")
+
+
+def _flag_counts(fit) -> dict[str, int]:
+    from .checks import FLAG_BITS  # noqa: PLC0415
+
+    return {name: int(((fit.flags >> bit) & 1).sum()) for name, bit in FLAG_BITS.items()}
+
+
+def _visible_rms(fit) -> float:
+    from .checks import FLAG_BITS  # noqa: PLC0415
+
+    visible = ((fit.flags >> FLAG_BITS["masked"]) & 1) == 0
+    used = fit.checks.bands_used
+    return float(fit.residual[used][:, visible].pow(2).mean().sqrt())
+
+
 def register(app: typer.Typer) -> None:
     app.command("fit-spectrum")(fit_spectrum)
+    app.command("reconstruct")(reconstruct)
 

@@ -1,0 +1,81 @@
+"""What of a cube the fit can use: dead bands, saturated pixels, the mask — and the per-pixel flags.
+
+A *dead band* (a filter that let no light through, a frame that was black) would pull every pixel
+towards absorbing everything at its wavelength; it is left out of the loss and reported. A
+*saturated* pixel (any band at or above ``saturated_reflectance``) is not skin reflectance; like the
+cube's own masked pixels it is left out of the loss, and its parameters follow the nearest visible
+pixel (``unknowns.extend``). Hair and other absorbers the model lacks are fitted and show as a high
+residual.
+
+Flags are one bit field per pixel (``FLAG_BITS``), written as the ``flags`` channel of ``maps.exr``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from ..calibration.cube import Cube
+
+__all__ = ["FLAG_BITS", "DataChecks", "check_cube", "flag_value"]
+
+#: Bit of each flag in the ``flags`` channel (value = sum of 2**bit).
+FLAG_BITS = {
+    "masked": 0,  # no data in the loss (cube mask, saturated): parameters copied from the nearest visible pixel
+    "saturated": 1,  # a band at or above the saturation level
+    "at_bound": 2,  # a parameter within at_bound_fraction of its range of a bound
+    "not_converged": 3,  # the Gauss–Newton step still proposed at the end moves a parameter by > σ/2
+    "high_residual": 4,  # residual RMS above high_residual_factor × the median pixel's
+    "band_excluded": 5,  # a dead band was left out of the whole fit
+}
+
+
+def flag_value(name: str) -> int:
+    return 1 << FLAG_BITS[name]
+
+
+@dataclass
+class DataChecks:
+    """``bands_used`` ``(L,)`` bool; ``fit_mask`` ``(H, W)``: pixels in the loss; ``saturated`` and
+    ``cube_masked`` ``(H, W)``; ``notes``: one line per finding, for ``fit.json`` and the console."""
+
+    bands_used: torch.Tensor
+    fit_mask: torch.Tensor
+    saturated: torch.Tensor
+    cube_masked: torch.Tensor
+    notes: list[str] = field(default_factory=list)
+    excluded_bands: list[dict] = field(default_factory=list)
+
+
+def check_cube(cube: Cube, saturated_reflectance: float, dead_band_reflectance: float) -> DataChecks:
+    """Screen a cube; raises ``ValueError`` when fewer than six bands or no pixel remain (five unknowns
+    per pixel plus the global scale need at least six bands)."""
+    refl = cube.reflectance
+    mask = cube.mask.to(torch.bool)
+    wl = cube.wavelength_nm.tolist()
+    saturated = (refl >= saturated_reflectance).any(dim=0) & mask
+    usable = mask & ~saturated
+    notes: list[str] = []
+    excluded: list[dict] = []
+    bands_used = torch.ones(len(wl), dtype=torch.bool)
+    if bool(usable.any()):
+        for j, w in enumerate(wl):
+            med = float(refl[j][usable].median())
+            if med <= dead_band_reflectance:
+                bands_used[j] = False
+                excluded.append({"wavelength_nm": w, "reason": f"dead band: median reflectance {med:.2g} <= {dead_band_reflectance:g}"})
+                notes.append(f"band {w:g} nm left out: dead (median reflectance {med:.2g})")
+    n_sat = int(saturated.sum())
+    if n_sat:
+        notes.append(f"{n_sat} saturated pixel(s) (a band >= {saturated_reflectance:g}) left out of the loss and flagged")
+    n_masked = int((~mask).sum())
+    if n_masked:
+        notes.append(f"{n_masked} pixel(s) outside the cube's mask: parameters follow the nearest visible pixel")
+    if int(bands_used.sum()) < 6:
+        raise ValueError(
+            f"cube has {int(bands_used.sum())} usable band(s) of {len(wl)}; the fit needs at least 6 (five parameters and a scale)"
+        )
+    if not bool(usable.any()):
+        raise ValueError("cube has no usable pixel (all masked or saturated)")
+    return DataChecks(bands_used, usable, saturated, ~mask, notes, excluded)

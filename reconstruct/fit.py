@@ -1,0 +1,244 @@
+"""Fit a reflectance cube: chromophore maps by inverse rendering (DWRR08 §6.3, made fast).
+
+``fit_cube(cube, settings)`` screens the cube (``checks.py``), builds the coarse-to-fine pyramid
+(``unknowns.pyramid``), starts on the coarsest level (``start.py``), runs the chosen optimiser
+(``optimizers.METHODS``) on every level, upsampling the unknowns between levels, and returns the maps,
+the scale, the fitted image, residuals, per-pixel flags and uncertainties.
+
+Uncertainty. At the end point the per-pixel covariance of the parameters is the Gauss–Newton sandwich
+Aₚ⁻¹ (Jₚᵀ Σ Jₚ) Aₚ⁻¹ with Jₚ the pixel's Jacobian with respect to its parameters (homogeneous model ×
+light factor × scale, as in ``gauss_newton.py``), Aₚ = JₚᵀJₚ and Σ = diag(σ_λ²) the residual variance
+of each band over all loss pixels (degrees of freedom L − 5 per pixel). Cross-talk is left out of Jₚ:
+the neighbours' share of a pixel's signal makes the true per-pixel uncertainty of fine detail larger
+than this, not smaller.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+
+from ..calibration.cube import Cube
+from ..model.maps import SkinMaps
+from ..model.renderer import SkinRenderer
+from .checks import DataChecks, check_cube, flag_value
+from .gauss_newton import curvature_and_columns, solve_step
+from .optimizers import METHODS, OptimResult
+from .problem import LevelProblem, RenderCounter
+from .settings import FitSettings
+from .start import STARTS
+from .unknowns import bounds, dparams_dx, extend, pyramid, to_params, upsample
+
+__all__ = ["DEFAULT_VIEW_ANGLE_DEG", "FitEvent", "MapFit", "fit_cube", "view_angle_of"]
+
+DEFAULT_VIEW_ANGLE_DEG = 30.0  # DWRR08 §6.1: camera 30° off the flash axis
+DEFAULT_BAND_FWHM_NM = 10.0  # DWRR08 §6.1: 10-nm band-pass filters
+
+
+@dataclass(frozen=True)
+class FitEvent:
+    """What a progress callback hears. ``stage``: "tables" (``level`` of ``levels`` wavelengths built),
+    "start", "fit" (``iteration`` done on ``level``, loss after it), "level" (``level`` finished) or
+    "final"; ``pixels``: pixels of every level, coarsest first."""
+
+    stage: str
+    level: int
+    levels: int
+    iteration: int = 0
+    loss: float = math.nan
+    pixels: tuple[int, ...] = ()
+
+
+Progress = Callable[[FitEvent], None]
+
+
+@dataclass
+class MapFit:
+    """The result on the cube's grid. Maps ``(1, H, W)``; ``image`` and ``residual`` ``(L, H, W)``
+    (scaled prediction and prediction − measurement, all bands); ``residual_rms`` ``(H, W)`` over the
+    used bands; ``flags`` ``(H, W)`` int bit field (``checks.FLAG_BITS``); ``sigma`` ``(5, H, W)``."""
+
+    maps: SkinMaps
+    scale: float
+    image: torch.Tensor
+    residual: torch.Tensor
+    residual_rms: torch.Tensor
+    flags: torch.Tensor
+    sigma: torch.Tensor
+    checks: DataChecks
+    wavelength_nm: torch.Tensor
+    view_angle_deg: float
+    view_angle_source: str
+    band_fwhm_nm: float
+    levels: list[dict] = field(default_factory=list)
+    counter: RenderCounter = field(default_factory=RenderCounter)
+    cpu_s: float = 0.0
+    wall_s: float = 0.0
+    history: list[tuple[float, float, int]] = field(default_factory=list)
+
+
+def view_angle_of(cube: Cube, settings: FitSettings) -> tuple[float, str]:
+    """The camera angle: the settings', else the cube meta's, else DWRR08's 30°; and where it came from."""
+    if settings.view_angle_deg is not None:
+        return float(settings.view_angle_deg), "fit settings"
+    meta = cube.meta or {}
+    for key in ("camera_angle_deg", "view_angle_deg"):
+        if isinstance(meta.get(key), (int, float)):
+            return float(meta[key]), f"cube meta {key}"
+    angle = (meta.get("rig") or {}).get("camera", {}).get("angle_deg") if isinstance(meta.get("rig"), dict) else None
+    if isinstance(angle, (int, float)):
+        return float(angle), "cube meta rig.camera.angle_deg"
+    return DEFAULT_VIEW_ANGLE_DEG, "default (DWRR08: 30°)"
+
+
+def band_fwhm_of(cube: Cube, settings: FitSettings) -> float:
+    """The filters' width: the settings', else the cube meta's ``band_fwhm_nm``, else 10 nm (PHYSICS.md §7)."""
+    if settings.band_fwhm_nm is not None:
+        return float(settings.band_fwhm_nm)
+    value = (cube.meta or {}).get("band_fwhm_nm")
+    return float(value) if isinstance(value, (int, float)) else DEFAULT_BAND_FWHM_NM
+
+
+def _resolve_device(device: str | torch.device | None) -> torch.device:
+    if device in (None, "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: no CUDA device is available here (use cpu or auto)")
+    return dev
+
+
+def fit_cube(
+    cube: Cube,
+    settings: FitSettings | None = None,
+    *,
+    device: str | torch.device | None = "cpu",
+    renderer: SkinRenderer | None = None,
+    progress: Progress | None = None,
+    cache_dir: str | None = None,
+) -> MapFit:
+    """Fit the five maps and the scale to ``cube``; see the module docstring."""
+    settings = settings or FitSettings()
+    dev = _resolve_device(device)
+    dtype = torch.float64 if settings.dtype == "float64" else torch.float32
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    checks = check_cube(cube, settings.saturated_reflectance, settings.dead_band_reflectance)
+    view, view_source = view_angle_of(cube, settings)
+    fwhm = band_fwhm_of(cube, settings)
+    renderer = renderer or SkinRenderer(settings.model, cache_dir)
+    wl = cube.wavelength_nm.to(torch.float64)
+    say = progress or (lambda event: None)
+    renderer.model.tables(wl, progress=lambda j, n: say(FitEvent("tables", j, n)))
+    target = cube.reflectance.to(device=dev, dtype=dtype)
+    levels = pyramid(target, checks.fit_mask.to(dev), cube.mm_per_pixel, settings.coarsest_px)
+    pixels = tuple(lv.shape[0] * lv.shape[1] for lv in levels)
+    counter = RenderCounter()
+    x = log_scale = None
+    records: list[dict] = []
+    history: list[tuple[float, float, int]] = []
+    result = problem = None
+    for i, level in enumerate(levels):
+        problem = LevelProblem(renderer, level, wl, checks.bands_used, view_angle_deg=view, border_mm=settings.border_mm,
+                               band_fwhm_nm=fwhm, counter=counter)
+        if x is None:
+            say(FitEvent("start", i, len(levels), pixels=pixels))
+            x = STARTS[settings.start](problem, dtype=dtype, device=dev)
+            log_scale = torch.zeros((), dtype=dtype, device=dev)
+        else:
+            x = upsample(x, level.shape)
+        c0, f0, b0 = time.process_time(), counter.forward, counter.backward
+        result = METHODS[settings.method](
+            problem, x, log_scale, settings, lambda it, loss, i=i: say(FitEvent("fit", i, len(levels), it, loss, pixels))
+        )
+        history += [(t - cpu0, loss, i) for t, loss in result.history]
+        records.append(_level_record(problem, result, time.process_time() - c0, counter.forward - f0, counter.backward - b0))
+        x, log_scale = extend(result.x, problem.index), result.log_scale
+        say(FitEvent("level", i, len(levels), result.iterations, result.evaluation.loss, pixels))
+    say(FitEvent("final", len(levels) - 1, len(levels), pixels=pixels))
+    out = _finish(problem, result, x, log_scale, checks, settings, cube.mm_per_pixel)
+    return MapFit(
+        **out, checks=checks, wavelength_nm=wl, view_angle_deg=view, view_angle_source=view_source, band_fwhm_nm=fwhm, levels=records,
+        counter=counter, cpu_s=time.process_time() - cpu0, wall_s=time.perf_counter() - wall0, history=history,
+    )
+
+
+def _level_record(problem: LevelProblem, result: OptimResult, cpu_s: float, forward: int, backward: int) -> dict:
+    n = problem.n_pixels * int((problem.band_weight > 0).sum())
+    return {
+        "shape": list(problem.level.shape),
+        "mm_per_pixel": problem.level.mm_per_pixel,
+        "iterations": result.iterations,
+        "converged": result.converged,
+        "rms_residual": math.sqrt(2.0 * result.evaluation.loss / max(n, 1)),
+        "scale": float(torch.exp(result.log_scale)),
+        "forward_renders": forward,
+        "backward_renders": backward,
+        "cpu_s": round(cpu_s, 3),
+    }
+
+
+def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: DataChecks, settings: FitSettings, mm: float) -> dict:
+    """Residuals, flags and uncertainties on the finest grid."""
+    ev = result.evaluation
+    scale = torch.exp(log_scale)
+    image = ev.image * scale
+    used = problem.band_weight > 0
+    residual = image - problem.level.target
+    residual_rms = torch.sqrt((residual[used] ** 2).mean(0))
+    p = to_params(x)
+    maps = SkinMaps(*(v[None] for v in p.unbind(0)), mm_per_pixel=mm)
+
+    jac, col = curvature_and_columns(problem, ev)
+    lam = torch.full((problem.n_pixels,), 1e-3, dtype=jac.dtype, device=jac.device)
+    grad = ev.grad.T if ev.grad is not None else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
+    dx, _, _ = solve_step(jac, col, grad, (col * ev.residual).sum(), lam, 1e-3, settings.free_scale)
+    sigma_pix = _sigma(problem, jac, ev.residual, x)
+    # a pixel has converged when the step still proposed moves no parameter by half its uncertainty
+    remaining = (problem.at_pixels(dparams_dx(x)) * dx).abs()
+    moving_pix = (remaining > 0.5 * sigma_pix.to(remaining.dtype)).any(1)
+
+    h, w = problem.level.shape
+    flags = torch.zeros(h * w, dtype=torch.int32, device=x.device)
+    flags[~problem.mask.reshape(-1)] |= flag_value("masked")
+    flags[checks.saturated.reshape(-1).to(x.device)] |= flag_value("saturated")
+    lo, hi = bounds(p.dtype, p.device)
+    margin = settings.at_bound_fraction * (hi - lo)
+    at_bound = ((p <= lo + margin) | (p >= hi - margin)).any(0).reshape(-1)
+    flags[at_bound & problem.mask.reshape(-1)] |= flag_value("at_bound")
+    moving = torch.zeros(h * w, dtype=torch.bool, device=x.device)
+    moving[problem.pixels] = moving_pix
+    flags[moving] |= flag_value("not_converged")
+    rms_pix = residual_rms.reshape(-1)[problem.pixels]
+    high = torch.zeros(h * w, dtype=torch.bool, device=x.device)
+    high[problem.pixels] = rms_pix > settings.high_residual_factor * rms_pix.median()
+    flags[high] |= flag_value("high_residual")
+    if not bool(checks.bands_used.all()):
+        flags |= flag_value("band_excluded")
+    sigma = torch.full((5, h * w), float("nan"), dtype=x.dtype, device=x.device)
+    sigma[:, problem.pixels] = sigma_pix.T.to(x.dtype)
+    return {
+        "maps": maps, "scale": float(scale), "image": image, "residual": residual, "residual_rms": residual_rms,
+        "flags": flags.reshape(h, w), "sigma": sigma.reshape(5, h, w),
+    }
+
+
+def _sigma(problem: LevelProblem, jac: torch.Tensor, residual: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Per-pixel standard deviation of each parameter ``(N, 5)`` (sandwich covariance, float64)."""
+    used = problem.band_weight > 0
+    n_used = int(used.sum())
+    dof = max(n_used - 5, 1) / n_used
+    var_band = (residual.double() ** 2).mean(0) / dof  # (L,)
+    dpdx = problem.at_pixels(dparams_dx(x)).double()  # (N, 5)
+    jp = jac.double() / dpdx.clamp_min(1e-300)[:, None, :]
+    jp = jp[:, used]
+    a = jp.transpose(1, 2) @ jp
+    ridge = 1e-12 * torch.diagonal(a, dim1=1, dim2=2).amax(1)[:, None, None] * torch.eye(5, dtype=a.dtype, device=a.device)
+    a_inv = torch.linalg.pinv(a + ridge, hermitian=True)
+    meat = jp.transpose(1, 2) @ (var_band[used][None, :, None] * jp)
+    cov = a_inv @ meat @ a_inv
+    return torch.sqrt(torch.diagonal(cov, dim1=1, dim2=2).clamp_min(0.0))
+

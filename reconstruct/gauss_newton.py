@@ -1,0 +1,195 @@
+"""Gauss–Newton / Levenberg–Marquardt with per-pixel 5×5 normal equations and one global scale.
+
+Curvature. Each pixel's 5×5 block is J̃ᵢᵀJ̃ᵢ with J̃ᵢ = s · fᵢ ⊙ J_h(xᵢ): the Jacobian of the pixel's
+*homogeneous* model (``LevelProblem.homogeneous_jacobian``, closed form, batched), scaled per band by
+the light factor fᵢ = (heterogeneous render)/(homogeneous model) that the window's edges and the
+neighbours impose, times the scale s. The scale's column is the prediction itself (∂(s·R)/∂log s =
+s·R, exact); it couples every pixel and is eliminated by the Schur complement, so a step costs N
+batched 5×5 solves and two reductions.
+
+Gradient. ``gn`` takes the exact Jᵀr from one forward+backward pass of the heterogeneous renderer: a
+preconditioned step whose fixed point is the heterogeneous optimum. ``gn-hom`` uses J̃ᵀr, needing no
+backward pass: it is Gauss–Newton with an approximate Jacobian (the neighbours' share of a pixel's
+sensitivity left out), whose fixed point satisfies J̃ᵀr = 0 instead of Jᵀr = 0 — the same point when
+the model fits the data (measured: from noise-free renders of a heterogeneous scene by the fit's own
+renderer it returns every parameter within 0.5%). With noise it is not the least-squares optimum, but
+measured on 24² and 32² cubes it reaches a lower loss than ``gn`` and ``adam`` did in 3–50× their
+time, with smaller parameter errors (``tests/bench/test_bench_reconstruct.py``). The exact gradient
+preconditioned by the homogeneous curvature converges slowly: detail finer than the light's spread
+reaches the gradient through J's neighbours' share twice (Jᵀ J), the curvature not at all.
+
+Damping and acceptance (Marquardt 1963; Nielsen's gain ratio, Madsen et al. 2004 §3.2): the damped
+system (J̃ᵀJ̃ + λᵢ D) δ = −g with D the diagonal; a step is kept when the true loss (a full render)
+falls; each pixel's λ follows its own gain ratio (actual over predicted decrease of its residual).
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from .optimizers import OptimResult, register_method
+from .problem import Evaluation, LevelProblem
+from .unknowns import X_LIMIT
+
+__all__ = ["curvature_and_columns", "gauss_newton", "solve_step"]
+
+_MAX_STEP = 3.0  # largest change of any x in one step (a factor e³ in a small concentration)
+_LAMBDA0 = 1e-3
+_LAMBDA_MIN = 1e-7
+
+
+def curvature_and_columns(problem: LevelProblem, ev: Evaluation) -> tuple[torch.Tensor, torch.Tensor]:
+    """J̃ ``(N, L, 5)`` (homogeneous Jacobian × light factor × scale, unused bands zeroed) and the
+    scale column c ``(N, L)`` = the scaled prediction at the loss pixels."""
+    x_pix = problem.at_pixels(ev.x).T  # (5, N)
+    hom, jac = problem.homogeneous_jacobian(x_pix)
+    het = problem.at_pixels(ev.image)  # (N, L)
+    scale = torch.exp(ev.log_scale)
+    factor = (het / hom.clamp_min(1e-12)).clamp(0.0, 2.0) * scale * problem.band_weight
+    return jac * factor[..., None], het * scale * problem.band_weight
+
+
+def solve_step(
+    jac: torch.Tensor, col: torch.Tensor, grad: torch.Tensor, grad_scale: torch.Tensor, lam: torch.Tensor,
+    lam_scale: float, free_scale: bool,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Damped Gauss–Newton step: ``δx`` ``(N, 5)``, ``δ log s`` (0-d), and ``A = J̃ᵀJ̃`` ``(N, 5, 5)``.
+
+    ``grad`` ``(N, 5)`` is ∂loss/∂x, ``grad_scale`` ∂loss/∂log s; the scale enters by the Schur
+    complement of the per-pixel blocks. Each block is solved in float64 after Jacobi scaling (unit
+    diagonal), so the step is invariant to the scale of each unknown — a parameter near a bound, where
+    the logistic map is flat, moves as freely as one in the middle — and Marquardt's damping λ·diag(A)
+    becomes λ·I. An unknown the data do not see at all (zero column) does not move."""
+    dtype = grad.dtype
+    j = jac.double()
+    a = j.transpose(1, 2) @ j
+    diag = torch.diagonal(a, dim1=1, dim2=2)
+    seen = diag > 1e-24 * diag.amax(dim=1, keepdim=True).clamp_min(1e-300)
+    s = torch.where(seen, torch.sqrt(diag), torch.ones_like(diag))
+    scaled = a / (s[:, :, None] * s[:, None, :])
+    scaled = torch.where(seen[:, :, None] & seen[:, None, :], scaled, torch.zeros_like(scaled))
+    eye = torch.eye(5, dtype=a.dtype, device=a.device)
+    damped = scaled + eye * (lam.double()[:, None, None] + 1e-9) + torch.diag_embed((~seen).double())
+    chol, info = torch.linalg.cholesky_ex(damped)
+    if bool(info.any()):  # numerically indefinite block: fall back to the damped diagonal
+        bad = info > 0
+        chol[bad] = eye * torch.sqrt(1.0 + lam.double()[bad, None, None])
+    mask = seen.double()
+    a_inv_g = torch.cholesky_solve((grad.double() / s * mask)[..., None], chol)[..., 0] / s * mask
+    if not free_scale:
+        return (-a_inv_g).to(dtype), torch.zeros((), dtype=dtype, device=grad.device), a.to(dtype)
+    b = (j.transpose(1, 2) @ col.double()[..., None])[..., 0]  # (N, 5)
+    a_inv_b = torch.cholesky_solve((b / s * mask)[..., None], chol)[..., 0] / s * mask
+    c = (col.double() ** 2).sum()
+    schur = c * (1.0 + lam_scale) - (b * a_inv_b).sum()
+    d_scale = -(grad_scale.double() - (b * a_inv_g).sum()) / schur.clamp_min(1e-12 * float(c) + 1e-300)
+    return (-(a_inv_g + a_inv_b * d_scale)).to(dtype), d_scale.to(dtype), a.to(dtype)
+
+
+def _apply(problem: LevelProblem, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
+    out = x.clone()
+    flat = out.reshape(5, -1)
+    flat[:, problem.pixels] = (flat[:, problem.pixels] + dx.T).clamp(-X_LIMIT, X_LIMIT)
+    return out
+
+
+class _Anderson:
+    """Anderson acceleration of the fixed-point map z ↦ z + δ(z) (Anderson 1965; Walker & Ni 2011,
+    type II): the next point combines the last ``memory`` steps so that their linearised residual is
+    least — GMRES on the linearised map, at the cost of a few inner products and no render."""
+
+    def __init__(self, memory: int) -> None:
+        self.memory = memory
+        self.points: list[torch.Tensor] = []
+        self.steps: list[torch.Tensor] = []
+
+    def reset(self) -> None:
+        self.points, self.steps = [], []
+
+    def next_point(self, z: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+        self.points.append(z.double())
+        self.steps.append(f.double())
+        self.points, self.steps = self.points[-self.memory - 1:], self.steps[-self.memory - 1:]
+        if len(self.points) < 2:
+            return z + f
+        df = torch.stack([b - a for a, b in zip(self.steps[:-1], self.steps[1:])], dim=1)
+        dg = torch.stack([(b + fb) - (a + fa) for a, b, fa, fb in zip(self.points[:-1], self.points[1:], self.steps[:-1], self.steps[1:])], dim=1)
+        gram = df.T @ df
+        gram = gram + 1e-10 * torch.trace(gram) * torch.eye(gram.shape[0], dtype=gram.dtype, device=gram.device)
+        gamma = torch.linalg.solve(gram, df.T @ self.steps[-1])
+        return (self.points[-1] + self.steps[-1] - dg @ gamma).to(z.dtype)
+
+
+def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None, *, exact: bool) -> OptimResult:
+    """LM iterations until the convergence test holds (``exact``: gradient from the backward pass)."""
+    ev = problem.evaluate(x0, log_scale0, grad=exact)
+    n = problem.n_pixels
+    lam = torch.full((n,), _LAMBDA0, dtype=x0.dtype, device=x0.device)
+    lam_scale = _LAMBDA0
+    history = [(time.process_time(), ev.loss)]
+    accel = _Anderson(settings.anderson_memory) if settings.anderson_memory > 0 else None
+    rejections = 0
+    converged = False
+    it = 0
+    step = torch.full((n,), float("nan"), dtype=x0.dtype, device=x0.device)
+    jac = col = None
+    for it in range(1, settings.max_iterations + 1):
+        if jac is None:
+            jac, col = curvature_and_columns(problem, ev)
+        grad = ev.grad.T if exact else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
+        grad_scale = (col * ev.residual).sum()
+        dx, ds, _ = solve_step(jac, col, grad, grad_scale, lam, lam_scale, settings.free_scale)
+        dx = dx.clamp(-_MAX_STEP, _MAX_STEP)
+        step = dx.abs().amax(dim=1)
+        accelerated = accel is not None and rejections == 0
+        if accelerated:
+            z = torch.cat([problem.at_pixels(ev.x).reshape(-1), ev.log_scale.reshape(1)])
+            z_next = accel.next_point(z, torch.cat([dx.reshape(-1), ds.reshape(1)]))
+            dx = (z_next[:-1] - z[:-1]).reshape(n, 5).clamp(-_MAX_STEP, _MAX_STEP)
+            ds = z_next[-1] - z[-1]
+        trial = problem.evaluate(_apply(problem, ev.x, dx), ev.log_scale + ds, grad=exact)
+        before = (ev.residual**2).sum(1)
+        after = (trial.residual**2).sum(1)
+        v = jac @ dx[..., None]
+        v = v[..., 0] + col * ds
+        predicted = -(2.0 * ((dx * grad).sum(1) + ds * (col * ev.residual).sum(1)) + (v * v).sum(1))
+        if trial.loss < ev.loss:
+            gain = (before - after) / predicted.clamp_min(1e-30)
+            lam = torch.where(gain > 0.75, lam / 3.0, torch.where(gain < 0.25, lam * 2.0, lam)).clamp(_LAMBDA_MIN, 1e7)
+            lam_scale = max(lam_scale / 3.0, 1e-7)
+            relative = (ev.loss - trial.loss) / max(ev.loss, 1e-300)
+            ev, jac, rejections = trial, None, 0
+            history.append((time.process_time(), ev.loss))
+            if progress is not None:
+                progress(it, ev.loss)
+            if relative < settings.ftol or float(step.max()) < settings.xtol:
+                converged = True
+                break
+        else:
+            if accelerated:  # the extrapolation failed: forget it and take the plain step next
+                accel.reset()
+            else:
+                worse = after > before
+                lam = torch.where(worse, lam * 4.0, lam * 2.0).clamp(_LAMBDA_MIN, 1e7)
+                lam_scale = min(lam_scale * 4.0, 1e7)
+            rejections += 1
+            if progress is not None:
+                progress(it, ev.loss)
+            if rejections >= 5 or float(step.max()) < settings.xtol:
+                converged = True  # no step of any damping lowers the loss: a (local) optimum of this model
+                break
+    if jac is None:
+        jac, col = curvature_and_columns(problem, ev)
+    return OptimResult(ev.x, ev.log_scale, ev, it, converged, history, step, jac.transpose(1, 2) @ jac)
+
+
+@register_method("gn")
+def gn_exact(problem, x0, log_scale0, settings, progress=None) -> OptimResult:
+    return gauss_newton(problem, x0, log_scale0, settings, progress, exact=True)
+
+
+@register_method("gn-hom")
+def gn_homogeneous(problem, x0, log_scale0, settings, progress=None) -> OptimResult:
+    return gauss_newton(problem, x0, log_scale0, settings, progress, exact=False)

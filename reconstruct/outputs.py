@@ -1,0 +1,108 @@
+"""What a fit leaves on disk: ``maps.exr``, ``fit.json``, ``report.png`` and ``fit_settings.yaml``.
+
+``maps.exr`` is the renderer's map format (``model/maps_io.write_maps``: C_m, β_m, C_he, C_bc, C_hd and
+``mm_per_pixel``) plus ``residual_rms``, one ``res_<nm>`` per band (fitted − measured reflectance
+factor), ``flags`` (bit field, meanings in the header attribute ``flag_bits`` and in ``fit.json``) and
+``sigma_<param>`` (one standard deviation per parameter, NaN where the pixel was not in the loss).
+``fit_settings.yaml`` is the resolved settings: ``skinlayers reconstruct --config`` on it re-makes the fit.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+import yaml
+
+from ..model import PARAMETER_NAMES
+from ..model.maps_io import write_maps
+from .checks import FLAG_BITS
+from .fit import MapFit
+from .settings import FitSettings
+from .stats import correlations, pca_explained, residual_stats, trimmed_stats
+
+__all__ = ["fit_summary", "write_outputs"]
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version  # noqa: PLC0415
+
+    try:
+        return version("skinlayers")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
+    """Everything ``fit.json`` holds, as a JSON-able dict."""
+    visible = (fit.flags & (1 << FLAG_BITS["masked"])) == 0
+    params = torch.stack([getattr(fit.maps, n)[0] for n in PARAMETER_NAMES])[:, visible]
+    sigma = fit.sigma[:, visible]
+    wl = [float(w) for w in fit.wavelength_nm.tolist()]
+    used = [bool(u) for u in fit.checks.bands_used.tolist()]
+    flags = {name: int(((fit.flags >> bit) & 1).sum()) for name, bit in FLAG_BITS.items()}
+    per_param = {}
+    for i, n in enumerate(PARAMETER_NAMES):
+        entry = trimmed_stats(params[i])
+        entry["sigma_median"] = float(sigma[i].median())
+        per_param[n] = entry
+    return {
+        "software_version": _version(),
+        "input": source,
+        "shape": list(fit.residual_rms.shape),
+        "wavelengths_nm": wl,
+        "mm_per_pixel": fit.maps.mm_per_pixel,
+        "view_angle_deg": fit.view_angle_deg,
+        "view_angle_source": fit.view_angle_source,
+        "band_fwhm_nm": fit.band_fwhm_nm,
+        "method": settings.method,
+        "start": settings.start,
+        "scale": fit.scale,
+        "converged": all(level["converged"] for level in fit.levels),
+        "iterations": sum(level["iterations"] for level in fit.levels),
+        "levels": fit.levels,
+        "time": {"cpu_s": round(fit.cpu_s, 3), "wall_s": round(fit.wall_s, 3), "renders": fit.counter.as_dict()},
+        "data_checks": {
+            "notes": fit.checks.notes,
+            "excluded_bands": fit.checks.excluded_bands,
+            "saturated_pixels": int(fit.checks.saturated.sum()),
+            "cube_masked_pixels": int(fit.checks.cube_masked.sum()),
+        },
+        "flags": {"bits": FLAG_BITS, "counts": flags},
+        "residual": residual_stats(fit.residual[:, visible], fit.residual_rms[visible], wl, used),
+        "parameters": per_param,
+        "correlations": correlations(params),
+        "pca": pca_explained(params),
+        "history": [[round(t, 3), loss, level] for t, loss, level in fit.history],
+        "settings": settings.model_dump(mode="json"),
+    }
+
+
+def write_outputs(fit: MapFit, settings: FitSettings, out_dir: str | Path, source: str = "", measured: torch.Tensor | None = None) -> dict[str, Path]:
+    """Write the four files into ``out_dir`` (created); returns their paths by kind."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    extra: dict[str, torch.Tensor] = {"residual_rms": fit.residual_rms, "flags": fit.flags.to(torch.float32)}
+    for j, w in enumerate(fit.wavelength_nm.tolist()):
+        extra[f"res_{w:g}"] = fit.residual[j]
+    for i, n in enumerate(PARAMETER_NAMES):
+        extra[f"sigma_{n}"] = fit.sigma[i]
+    maps_path = write_maps(
+        out / "maps.exr", fit.maps.to(device="cpu"), {k: v.detach().cpu() for k, v in extra.items()},
+        {"wavelengths_nm": [float(w) for w in fit.wavelength_nm], "scale": float(fit.scale), "method": settings.method,
+         "software_version": _version(), "flag_bits": json.dumps(FLAG_BITS)},
+    )
+    summary = fit_summary(fit, settings, source)
+    json_path = out / "fit.json"
+    json_path.write_text(json.dumps(summary, indent=1, allow_nan=True))
+    settings_path = out / "fit_settings.yaml"
+    settings_path.write_text(
+        "# Resolved fit settings of this run: `skinlayers reconstruct CUBE --config fit_settings.yaml` re-makes it.\n"
+        + yaml.safe_dump(settings.model_dump(mode="json"), sort_keys=False)
+    )
+    report_path = out / "report.png"
+    from .report import plot_report  # noqa: PLC0415 (matplotlib only when a report is written)
+
+    plot_report(fit, measured if measured is not None else fit.image - fit.residual, report_path)
+    return {"maps": maps_path, "fit": json_path, "settings": settings_path, "report": report_path}

@@ -1,0 +1,129 @@
+"""``skinlayers reconstruct``: session or cube in, maps.exr + fit.json + report.png + settings out;
+errors a user can cause end as one line and exit 1."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+import yaml
+from typer.testing import CliRunner
+
+from skinlayers.calibration.cube import write_cube
+from skinlayers.cli import app
+from skinlayers.model import PARAMETER_NAMES
+from skinlayers.model.maps_io import read_exr, read_maps
+from skinlayers.reconstruct.settings import FitSettings, FitSettingsError, load_fit_settings
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory, small_cube):
+    """A session folder whose cube lies where ``skinlayers calibrate`` writes it: beside the session."""
+    folder = tmp_path_factory.mktemp("sessions") / "arm"
+    folder.mkdir()
+    write_cube(folder.parent / "arm_calibrated" / "cube.exr", small_cube.cube)
+    return folder
+
+
+def _invoke(args):
+    from skinlayers.cli import main  # noqa: F401 (the same app main() runs)
+
+    return runner.invoke(app, args, catch_exceptions=True)
+
+
+@pytest.fixture(scope="module")
+def run(session, tmp_path_factory):
+    config = tmp_path_factory.mktemp("config") / "fit.yaml"
+    config.write_text("high_residual_factor: 3.5\n")  # changes flags only, so the maps must equal small_fit's
+    result = _invoke(["reconstruct", str(session), "--config", str(config), "--device", "cpu"])
+    return result, config
+
+
+def test_second_run_from_the_cli_is_identical(run, session, small_fit):
+    result, _ = run
+    assert result.exit_code == 0, result.output
+    maps = read_maps(session.parent / "arm_reconstruction" / "maps.exr")
+    for n in PARAMETER_NAMES:
+        assert torch.equal(getattr(maps, n), getattr(small_fit.maps, n)), n
+    summary = json.loads((session.parent / "arm_reconstruction" / "fit.json").read_text())
+    assert summary["scale"] == small_fit.scale
+
+
+def test_reconstruct_a_session_writes_every_output(run, session):
+    result, config = run
+    assert result.exit_code == 0, result.output
+    out = session.parent / "arm_reconstruction"
+    for name in ("maps.exr", "fit.json", "report.png", "fit_settings.yaml"):
+        assert (out / name).exists(), name
+    maps = read_maps(out / "maps.exr")  # the renderer's map format, validated
+    assert maps.shape == (1, 24, 24)
+    channels, header = read_exr(out / "maps.exr")
+    wl = [430, 460, 490, 520, 550, 580, 610, 640, 670]
+    expected = {"residual_rms", "flags", *(f"res_{w}" for w in wl), *(f"sigma_{n}" for n in PARAMETER_NAMES)}
+    assert expected <= set(channels)
+    assert json.loads(header["flag_bits"])["high_residual"] == 4
+    summary = json.loads((out / "fit.json").read_text())
+    for key in ("settings", "iterations", "time", "residual", "parameters", "correlations", "pca", "flags", "data_checks", "scale"):
+        assert key in summary, key
+    assert summary["settings"]["high_residual_factor"] == 3.5
+    assert set(summary["parameters"]) == set(PARAMETER_NAMES)
+    assert "p5" in summary["parameters"]["C_m"] and "p95" in summary["parameters"]["C_m"]
+    assert summary["view_angle_source"] == "cube meta camera_angle_deg"
+    assert abs(sum(summary["pca"]["explained_ratio"]) - 1.0) < 1e-9
+    resolved = yaml.safe_load((out / "fit_settings.yaml").read_text())
+    assert FitSettings.model_validate(resolved) == FitSettings(high_residual_factor=3.5)
+    assert "maps:" in result.output and "report:" in result.output
+    # a second run into the same folder is refused unless forced
+    again = _invoke(["reconstruct", str(session), "--config", str(config)])
+    assert again.exit_code != 0 and "--force" in str(again.exception or again.output)
+
+
+def test_session_folder_is_left_untouched(run, session):
+    assert run[0].exit_code == 0
+    assert list(session.iterdir()) == []
+
+
+def test_a_calibrated_folder_or_cube_file_is_accepted(session, tmp_path):
+    from skinlayers.reconstruct.cli import default_reconstruction_dir, resolve_cube_path
+
+    calibrated = session.parent / "arm_calibrated"
+    assert resolve_cube_path(session) == calibrated / "cube.exr"
+    assert resolve_cube_path(calibrated) == calibrated / "cube.exr"
+    assert resolve_cube_path(calibrated / "cube.exr") == calibrated / "cube.exr"
+    assert default_reconstruction_dir(calibrated, calibrated / "cube.exr") == calibrated / "reconstruction"
+
+
+def test_session_without_cube_says_to_calibrate(tmp_path):
+    result = _invoke(["reconstruct", str(tmp_path)])
+    assert result.exit_code != 0
+    assert "skinlayers calibrate" in str(result.exception)
+
+
+def test_bad_settings_name_the_key(tmp_path):
+    bad = tmp_path / "fit.yaml"
+    bad.write_text("method: simplex\n")
+    with pytest.raises(FitSettingsError, match="method"):
+        load_fit_settings(bad)
+    bad.write_text("max_iteratons: 3\n")
+    with pytest.raises(FitSettingsError, match="max_iteratons: unknown key"):
+        load_fit_settings(bad)
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys, monkeypatch):
+    import skinlayers.cli as cli
+
+    monkeypatch.setattr("sys.argv", ["skinlayers", "reconstruct", str(tmp_path / "missing.exr")])
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main()
+    assert exit_info.value.code == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "missing.exr" in err and "\n" not in err
+
+
+def test_shipped_yaml_is_the_embedded_default():
+    from skinlayers.configs import config_path
+
+    assert load_fit_settings(config_path("fit.yaml")) == FitSettings()
