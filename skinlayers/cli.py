@@ -12,6 +12,7 @@ import sys
 
 import typer
 
+from . import demo as demo_cli
 from .acquire import cli as acquire_cli
 from .acquire.devices import DeviceError
 from .calibration import cli as calibration_cli
@@ -32,6 +33,7 @@ model_cli.register(app)
 acquire_cli.register(app)
 calibration_cli.register(app)
 reconstruct_cli.register(app)
+demo_cli.register(app)
 
 
 def main() -> None:

@@ -1,0 +1,195 @@
+"""``skinlayers demo``: the whole job on embedded defaults, into a fresh folder.
+
+A simulated capture (the default scene, rig and camera), its calibration into a reflectance cube, the
+map fit, and a report that sets the fitted maps against the simulation's truth. Every step is the
+command a user would run (``capture --sim``, ``calibrate``, ``reconstruct``), called in turn.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+__all__ = ["accuracy_against_truth", "demo", "register"]
+
+#: Folder the demo writes to when none is given; taken with a suffix (-2, -3, …) when it exists.
+DEFAULT_FOLDER = "skinlayers-demo"
+
+
+def fresh_folder(base: Path) -> Path:
+    """``base`` when it does not exist (or is an empty folder), else the first free ``base-N``."""
+    if not base.exists() or (base.is_dir() and not any(base.iterdir())):
+        return base
+    n = 2
+    while (candidate := base.with_name(f"{base.name}-{n}")).exists():
+        n += 1
+    return candidate
+
+
+def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> dict:
+    """Fitted maps against the simulation's truth (``truth/maps.exr`` box-averaged to the fit's grid):
+    per parameter the median error over the pixels in the fit (relative; β_m absolute), the truth's
+    and the fit's medians and the fit's median uncertainty; the residual RMS beside the cube's noise
+    RMS (the cube against ``truth/reflectance.exr``, the noise floor), both over the same pixels and
+    the bands the fit used. Pixels flagged for a high residual (hairs and
+    veins, which the fit leaves to the residual) are counted out, and the count is given."""
+    import numpy as np  # noqa: PLC0415
+    import torch  # noqa: PLC0415
+    import torch.nn.functional as F  # noqa: PLC0415
+
+    from .model import PARAMETER_NAMES  # noqa: PLC0415
+    from .model.maps_io import read_exr, read_maps  # noqa: PLC0415
+    from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
+
+    truth = read_maps(session / "truth" / "maps.exr")
+    fit = read_maps(reconstruction / "maps.exr")
+    channels, _ = read_exr(reconstruction / "maps.exr")
+    flags = torch.as_tensor(np.asarray(channels["flags"])).to(torch.int64)
+    keep = (((flags >> FLAG_BITS["masked"]) & 1) == 0) & (((flags >> FLAG_BITS["high_residual"]) & 1) == 0)
+    k = truth.shape[-1] // fit.shape[-1]
+    summary = json.loads((reconstruction / "fit.json").read_text())
+    out: dict = {"pixels": int(keep.sum()), "high_residual_pixels": int(((flags >> FLAG_BITS["high_residual"]) & 1).sum()),
+                 "parameters": {}}
+    for name in PARAMETER_NAMES:
+        t = F.avg_pool2d(getattr(truth, name)[None].double(), k)[0, 0] if k > 1 else getattr(truth, name)[0].double()
+        f = getattr(fit, name)[0].double()
+        err = (f - t)[keep]
+        relative = name != "beta_m"
+        value = (err.abs() / t[keep].clamp_min(1e-12)).median() if relative else err.abs().median()
+        sigma = channels.get(f"sigma_{name}")
+        out["parameters"][name] = {
+            "median_error": float(value), "error_kind": "relative" if relative else "absolute",
+            "truth_median": float(t[keep].median()), "fit_median": float(f[keep].median()),
+            "sigma_median": float(np.nanmedian(np.asarray(sigma)[keep.numpy()])) if sigma is not None else None,
+        }
+    cube_channels, _ = read_exr(cube)
+    truth_r, _ = read_exr(session / "truth" / "reflectance.exr")
+    bands = [f"{w:g}" for w in summary["wavelengths_nm"]]
+    used = [b for b in bands if summary["residual"]["per_band"].get(b, {}).get("used", True)]
+    out["residual_rms"] = float(np.sqrt(np.mean(np.stack([np.asarray(channels[f"res_{b}"]) for b in used])[:, keep.numpy()] ** 2)))
+    if truth_r[f"R_{bands[0]}"].shape == cube_channels[f"R_{bands[0]}"].shape:
+        noise = np.stack([np.asarray(cube_channels[f"R_{b}"]) - np.asarray(truth_r[f"R_{b}"]) for b in used])
+        out["cube_noise_rms"] = float(np.sqrt(np.mean(noise[:, keep.numpy()] ** 2)))
+    return out
+
+
+def _figure(session: Path, reconstruction: Path, path: Path) -> None:
+    """Truth, fit and their difference for C_m, β_m, C_he and C_hd."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import torch.nn.functional as F  # noqa: PLC0415
+
+    from .model.maps_io import read_maps  # noqa: PLC0415
+
+    truth, fit = read_maps(session / "truth" / "maps.exr"), read_maps(reconstruction / "maps.exr")
+    k = truth.shape[-1] // fit.shape[-1]
+    names = ("C_m", "beta_m", "C_he", "C_hd")
+    fig, axes = plt.subplots(3, len(names), figsize=(3.2 * len(names), 9.0))
+    for j, name in enumerate(names):
+        t = getattr(truth, name)[None].float()
+        t = (F.avg_pool2d(t, k) if k > 1 else t)[0, 0].numpy()
+        f = getattr(fit, name)[0].float().numpy()
+        lo, hi = float(min(t.min(), f.min())), float(max(t.max(), f.max()))
+        for i, (image, label) in enumerate(((t, "truth"), (f, "fit"))):
+            shown = axes[i, j].imshow(image, vmin=lo, vmax=hi, cmap="magma")
+            axes[i, j].set_title(f"{name} {label}", fontsize=9)
+            fig.colorbar(shown, ax=axes[i, j], fraction=0.046)
+        d = f - t
+        span = float(abs(d).max()) or 1.0
+        shown = axes[2, j].imshow(d, vmin=-span, vmax=span, cmap="coolwarm")
+        axes[2, j].set_title(f"{name} fit − truth", fontsize=9)
+        fig.colorbar(shown, ax=axes[2, j], fraction=0.046)
+    for ax in axes.ravel():
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def demo(
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help=f"Folder to create (default: ./{DEFAULT_FOLDER}, or -2, -3 … when taken)."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the simulated scene, flash, motion and noise."),
+    size: int = typer.Option(256, "--size", help="Side of the calibrated cube in pixels (the rig's 256; 128 or 64 run faster)."),
+    device: str = typer.Option("auto", "--device", help="Where the simulator and the fit run: auto, cpu or cuda."),
+) -> None:
+    """Simulated capture → calibration → reconstruction → report, on embedded defaults.
+
+    Example: skinlayers demo            (about four minutes on two CPU cores, the first time longer)
+             skinlayers demo --size 64  (under a minute)
+    """
+    from .acquire.cli import capture  # noqa: PLC0415
+    from .acquire.rig import load_rig  # noqa: PLC0415
+    from .calibration.cli import calibrate  # noqa: PLC0415
+    from .reconstruct.cli import reconstruct  # noqa: PLC0415
+
+    if size < 16 or size % 8:
+        raise ValueError(f"--size {size}: expected a multiple of 8, at least 16 (e.g. 64, 128, 256)")
+    if out is not None and out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"{out}: exists and is not empty; the demo writes into a fresh folder")
+    folder = out if out is not None else fresh_folder(Path(DEFAULT_FOLDER))
+    folder.mkdir(parents=True, exist_ok=True)
+    session, calibrated, reconstruction = folder / "session", folder / "calibrated", folder / "reconstruction"
+    rig_file = folder / "rig.yaml"
+    import yaml  # noqa: PLC0415
+
+    rig = load_rig(geometry={"cube_px": size, "rectify_px": 2 * size}, camera={"driver": "simulated"})
+    rig_file.write_text(yaml.safe_dump(rig.model_dump(mode="json"), sort_keys=False))
+    times: dict[str, float] = {}
+
+    def step(title: str) -> float:
+        typer.secho(f"\n── {title} ──", bold=True, err=True)
+        return time.perf_counter()
+
+    t = step(f"1/4 capture (simulated rig, seed {seed}) → {session}")
+    capture(out=session, sim=True, rig_file=rig_file, sim_camera=False, wheel_port=None, scene=None, sim_settings=None,
+            seed=seed, resume=False, yes=True, subject="demo", site="simulated forearm", operator="skinlayers demo",
+            wheel_speed=0.0, device=device)
+    times["capture_s"] = time.perf_counter() - t
+    t = step(f"2/4 calibrate → {calibrated}")
+    calibrate(session=session, out=calibrated, config=None, no_dark_frame=False, no_flat_field=False, no_gray_card=False,
+              no_polarization=False, no_spectralon=False, no_align=False, gray_card_roi=None, force=False, as_json=False)
+    times["calibrate_s"] = time.perf_counter() - t
+    t = step(f"3/4 reconstruct → {reconstruction}")
+    reconstruct(source=calibrated / "cube.exr", out=reconstruction, config=None, device=device, method=None, start=None, force=False)
+    times["reconstruct_s"] = time.perf_counter() - t
+    t = step("4/4 report: the fit against the simulation's truth")
+    accuracy = accuracy_against_truth(session, reconstruction, calibrated / "cube.exr")
+    accuracy["times_s"] = {k: round(v, 1) for k, v in times.items()}
+    (folder / "accuracy.json").write_text(json.dumps(accuracy, indent=2))
+    _figure(session, reconstruction, folder / "truth_vs_fit.png")
+    _print_accuracy(accuracy)
+    typer.echo("")
+    typer.echo(f"demo folder:    {folder}")
+    typer.echo(f"  session:      {session}   (raw DNG frames, manifest.json, truth/)")
+    typer.echo(f"  cube:         {calibrated / 'cube.exr'}   (+ calibration.json, contact_sheet.png)")
+    typer.echo(f"  maps:         {reconstruction / 'maps.exr'}   (+ fit.json, report.png)")
+    typer.echo(f"  accuracy:     {folder / 'accuracy.json'}, {folder / 'truth_vs_fit.png'}")
+    typer.echo("times: " + ", ".join(f"{k[:-2]} {v:.0f} s" for k, v in times.items()))
+
+
+def _print_accuracy(accuracy: dict) -> None:
+    from rich.console import Console  # noqa: PLC0415
+    from rich.table import Table  # noqa: PLC0415
+
+    table = Table(title=f"fit against truth ({accuracy['pixels']} px; {accuracy['high_residual_pixels']} high-residual px left out)")
+    for column in ("parameter", "truth median", "fit median", "median error", "median σ"):
+        table.add_column(column, justify="right")
+    for name, p in accuracy["parameters"].items():
+        error = f"{100 * p['median_error']:.1f}%" if p["error_kind"] == "relative" else f"{p['median_error']:.3f}"
+        sigma = "" if p["sigma_median"] is None else f"{p['sigma_median']:.3g}"
+        table.add_row(name, f"{p['truth_median']:.4g}", f"{p['fit_median']:.4g}", error, sigma)
+    console = Console()
+    console.print(table)
+    noise = accuracy.get("cube_noise_rms")
+    console.print(f"residual RMS {accuracy['residual_rms']:.4f}" + (f"; the cube's own noise against the truth, RMS {noise:.4f}" if noise else ""))
+
+
+def register(app: typer.Typer) -> None:
+    app.command("demo")(demo)

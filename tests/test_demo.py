@@ -1,0 +1,92 @@
+"""End to end: ``skinlayers demo`` — simulated capture → calibration → reconstruction → report.
+
+The session is the simulator's (the default scene: Fitzpatrick III interior arm with smooth variation,
+freckles, a scar, a vein and hairs; flash jitter, motion, vignetting, lens blur and sensor noise),
+rendered on a grid twice finer than the cube with three wavelengths per band, through the whole
+calibration; the fit sees only the cube. At ``--size 64`` the cube's pixels carry the same noise as the
+rig's 256² cube (each averages the same number of photosites), so what holds here holds there.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from skinlayers.calibration.cube import read_cube
+from skinlayers.cli import app
+from skinlayers.model import PARAMETER_BOUNDS, PARAMETER_NAMES
+from skinlayers.model.maps_io import read_maps
+from skinlayers.reconstruct.fit import fit_cube
+from skinlayers.reconstruct.settings import load_fit_settings
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "run"
+    result = CliRunner().invoke(app, ["demo", "--size", "64", "--out", str(out), "--device", "cpu"])
+    assert result.exit_code == 0, (result.output, result.exception)
+    return out, result.output, json.loads((out / "accuracy.json").read_text())
+
+
+def test_every_step_leaves_its_files_and_says_where(demo):
+    out, output, _ = demo
+    for name in ("session/manifest.json", "session/truth/maps.exr", "session/truth/reflectance.exr",
+                 "calibrated/cube.exr", "calibrated/calibration.json", "calibrated/contact_sheet.png",
+                 "reconstruction/maps.exr", "reconstruction/fit.json", "reconstruction/report.png",
+                 "accuracy.json", "truth_vs_fit.png", "rig.yaml"):
+        assert (out / name).is_file(), name
+    assert str(out / "reconstruction" / "maps.exr") in output and "demo folder" in output
+
+
+def test_maps_are_finite_and_within_bounds(demo):
+    maps = read_maps(demo[0] / "reconstruction" / "maps.exr")
+    assert maps.shape == (1, 64, 64)
+    for name in PARAMETER_NAMES:
+        v = getattr(maps, name)
+        lo, hi = PARAMETER_BOUNDS[name]
+        assert bool(torch.isfinite(v).all()), name
+        assert lo <= float(v.min()) and float(v.max()) <= hi, name
+
+
+def test_residual_at_the_noise_floor(demo):
+    """Away from hairs and veins (flagged for their residual, which the model leaves there): the fit's
+    residual is below 3% and within 1.2× the cube's own noise against the truth."""
+    acc = demo[2]
+    assert acc["high_residual_pixels"] < 0.1 * 64 * 64
+    assert acc["residual_rms"] < 0.03
+    assert acc["residual_rms"] <= 1.2 * acc["cube_noise_rms"], acc
+
+
+def test_epidermal_blood_within_the_acceptance(demo):
+    assert demo[2]["parameters"]["C_he"]["median_error"] < 0.25, demo[2]["parameters"]["C_he"]
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "open (issue 6): at the simulated camera's noise (0.3–1.5% reflectance per cube pixel) the per-pixel "
+    "estimates of C_m, C_hd and β_m miss the acceptance (measured: C_m 19%, C_hd 84%, β_m 0.18); on cubes "
+    "with ≤0.06% noise they meet it (tests/reconstruct/test_fit_recovery.py)"))
+def test_melanin_and_dermal_blood_within_the_acceptance(demo):
+    p = demo[2]["parameters"]
+    assert p["C_m"]["median_error"] < 0.10 and p["C_hd"]["median_error"] < 0.10, p
+    assert p["beta_m"]["median_error"] < 0.10, p
+
+
+def test_a_second_fit_of_the_cube_is_identical(demo):
+    out = demo[0]
+    first = read_maps(out / "reconstruction" / "maps.exr")
+    again = fit_cube(read_cube(out / "calibrated" / "cube.exr"), load_fit_settings(None), device="cpu")
+    for name in PARAMETER_NAMES:
+        assert torch.equal(getattr(again.maps, name).float(), getattr(first, name).float()), name
+    summary = json.loads((out / "reconstruction" / "fit.json").read_text())
+    assert math.isclose(again.scale, summary["scale"], rel_tol=0, abs_tol=0)
+
+
+def test_an_occupied_folder_is_refused(tmp_path):
+    (tmp_path / "x").write_text("keep me")
+    result = CliRunner().invoke(app, ["demo", "--out", str(tmp_path)])
+    assert result.exit_code != 0 and "fresh folder" in str(result.exception)
+    assert (tmp_path / "x").read_text() == "keep me"
