@@ -9,13 +9,13 @@ and a 14-bit camera's data fits a 16-bit container with its white level stated. 
 
 from __future__ import annotations
 
-import os
-import tempfile
 from fractions import Fraction
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+
+from .manifest import atomic_write
 
 __all__ = ["DNG_BIT_DEPTHS", "write_dng"]
 
@@ -94,16 +94,4 @@ def write_dng(
     writer = RAW2DNG()
     writer.options(t, path="", compress=False)
     data = bytes(writer.convert(raw))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".dng")
-    os.fchmod(fd, 0o644)  # mkstemp makes it private; a session is shared data
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return atomic_write(path, data)

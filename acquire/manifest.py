@@ -134,11 +134,19 @@ def write_manifest(session: str | Path, manifest: Manifest) -> Path:
     session = Path(session)
     path = session / MANIFEST_NAME
     text = json.dumps(manifest.model_dump(mode="json"), indent=2) + "\n"
-    fd, tmp = tempfile.mkstemp(dir=session, prefix=".manifest-", suffix=".tmp")
-    os.fchmod(fd, 0o644)  # mkstemp makes it private; a session is shared data
+    return atomic_write(path, text.encode(), prefix=".manifest-")
+
+
+def atomic_write(path: str | Path, data: bytes, prefix: str = ".tmp-") -> Path:
+    """Write ``data`` to ``path`` atomically: a temporary file in the same folder, flushed to disk, then
+    renamed over ``path``; readable by all (0644: a session is shared data)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=prefix, suffix=".tmp")
+    os.fchmod(fd, 0o644)  # mkstemp makes it private
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -10,10 +10,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from ..model.settings import format_validation_error
+from ..model.settings import format_validation_error, read_yaml_mapping
 
 __all__ = ["BandConfig", "CameraConfig", "GeometryConfig", "PolarizationConfig", "RigConfig", "RigError",
            "TargetsConfig", "WheelConfig", "load_rig"]
@@ -165,14 +164,7 @@ def load_rig(path: str | Path | None = None, **overrides) -> RigConfig:
     ``RigError`` naming the file, the key and the problem.
     """
     path = Path(path) if path is not None else default_rig_path()
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except OSError as exc:
-        raise RigError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except yaml.YAMLError as exc:
-        raise RigError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-    if not isinstance(data, dict):
-        raise RigError(f"{path}: expected a mapping at the top level")
+    data = read_yaml_mapping(path, RigError)
     for key, value in overrides.items():
         if isinstance(value, dict) and isinstance(data.get(key), dict):
             data[key] = {**data[key], **value}

@@ -20,12 +20,11 @@ from typing import Annotated, Optional
 
 import numpy as np
 import torch
-import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..model.maps import SkinMaps
 from ..model.params import PARAMETER_BOUNDS, PARAMETER_NAMES, TABLE2
-from ..model.settings import SkinOptics, format_validation_error
+from ..model.settings import SkinOptics, format_validation_error, read_yaml_mapping
 from ..model.spectra import chromophore_spectra
 
 __all__ = ["SceneConfig", "SceneError", "SkinScene", "load_scene", "scene_from_dict"]
@@ -141,14 +140,7 @@ def default_scene_path() -> Path:
 def load_scene(path: str | Path | None = None) -> SceneConfig:
     """The scene of a YAML file (the embedded ``configs/scene.yaml`` when ``path`` is None)."""
     path = Path(path) if path is not None else default_scene_path()
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except OSError as exc:
-        raise SceneError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except yaml.YAMLError as exc:
-        raise SceneError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-    if not isinstance(data, dict):
-        raise SceneError(f"{path}: expected a mapping at the top level")
+    data = read_yaml_mapping(path, SceneError)
     return scene_from_dict(data, str(path))
 
 

@@ -10,10 +10,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from ..model.settings import format_validation_error
+from ..model.settings import format_validation_error, read_yaml_mapping
 
 __all__ = ["ChannelCurve", "SimulationError", "SimulationSettings", "load_simulation_settings", "simulation_from_dict"]
 
@@ -173,14 +172,7 @@ def default_simulation_path() -> Path:
 def load_simulation_settings(path: str | Path | None = None) -> SimulationSettings:
     """Settings of a YAML file (the embedded ``configs/simulation.yaml`` when ``path`` is None)."""
     path = Path(path) if path is not None else default_simulation_path()
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except OSError as exc:
-        raise SimulationError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except yaml.YAMLError as exc:
-        raise SimulationError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-    if not isinstance(data, dict):
-        raise SimulationError(f"{path}: expected a mapping at the top level")
+    data = read_yaml_mapping(path, SimulationError)
     return simulation_from_dict(data, str(path))
 
 

@@ -10,10 +10,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from ..model.settings import format_validation_error
+from ..model.settings import format_validation_error, read_yaml_mapping
 from .errors import CalibrationError
 
 __all__ = ["CalibrationSettings", "SettingsFileError", "load_calibration_settings"]
@@ -141,17 +140,8 @@ def load_calibration_settings(path: str | Path | None = None, **overrides) -> Ca
     data: dict = {}
     source = "calibration settings"
     if path is not None:
-        path = Path(path)
         source = str(path)
-        try:
-            loaded = yaml.safe_load(path.read_text())
-        except OSError as exc:
-            raise SettingsFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
-        except yaml.YAMLError as exc:
-            raise SettingsFileError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-        if loaded is not None and not isinstance(loaded, dict):
-            raise SettingsFileError(f"{path}: expected a mapping of settings at the top level")
-        data = dict(loaded or {})
+        data = dict(read_yaml_mapping(path, SettingsFileError, "of settings"))
     data.update(overrides)
     try:
         return CalibrationSettings.model_validate(data)

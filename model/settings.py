@@ -192,6 +192,23 @@ class ModelSettings(_Strict):
         return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
+def read_yaml_mapping(path: str | Path, error: type[Exception], what: str = "") -> dict:
+    """The mapping at the top of a YAML file (loaded safely; empty file: ``{}``). Raises ``error`` naming
+    the file and the problem: unreadable, not YAML, or not a mapping (``what``: "of settings", …)."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise error(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except yaml.YAMLError as exc:
+        raise error(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise error(f"{path}: expected a mapping {what + ' ' if what else ''}at the top level")
+    return data
+
+
 def load_model_settings(path: str | Path | None = None) -> ModelSettings:
     """Embedded defaults, overridden by a YAML file if one is given.
 
@@ -199,15 +216,7 @@ def load_model_settings(path: str | Path | None = None) -> ModelSettings:
     """
     if path is None:
         return ModelSettings()
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except OSError as exc:
-        raise SettingsError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except yaml.YAMLError as exc:
-        raise SettingsError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-    if not isinstance(data, dict):
-        raise SettingsError(f"{path}: expected a mapping of settings at the top level")
+    data = read_yaml_mapping(path, SettingsError, "of settings")
     try:
         return ModelSettings.model_validate(data)
     except ValidationError as exc:

@@ -10,11 +10,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..model import ModelSettings
-from ..model.settings import format_validation_error
+from ..model.settings import format_validation_error, read_yaml_mapping
 
 __all__ = ["FitSettings", "FitSettingsError", "load_fit_settings"]
 
@@ -121,17 +120,8 @@ def load_fit_settings(path: str | Path | None = None, **overrides) -> FitSetting
     data: dict = {}
     source = "fit settings"
     if path is not None:
-        path = Path(path)
         source = str(path)
-        try:
-            loaded = yaml.safe_load(path.read_text())
-        except OSError as exc:
-            raise FitSettingsError(f"{path}: cannot read ({exc.strerror or exc})") from None
-        except yaml.YAMLError as exc:
-            raise FitSettingsError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-        if loaded is not None and not isinstance(loaded, dict):
-            raise FitSettingsError(f"{path}: expected a mapping of settings at the top level")
-        data = dict(loaded or {})
+        data = dict(read_yaml_mapping(path, FitSettingsError, "of settings"))
     data.update({k: v for k, v in overrides.items() if v is not None})
     try:
         return FitSettings.model_validate(data)

@@ -75,7 +75,10 @@ def test_melanin_and_dermal_blood_within_the_acceptance(demo):
     assert p["beta_m"]["median_error"] < 0.10, p
 
 
+@pytest.mark.slow
 def test_a_second_fit_of_the_cube_is_identical(demo):
+    """(Slow: a second fit; the default run checks the same on a synthetic cube through the CLI,
+    ``tests/reconstruct/test_reconstruct_cli.py``.)"""
     out = demo[0]
     first = read_maps(out / "reconstruction" / "maps.exr")
     again = fit_cube(read_cube(out / "calibrated" / "cube.exr"), load_fit_settings(None), device="cpu")
