@@ -21,8 +21,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
-import tempfile
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass
@@ -41,6 +39,7 @@ from ._optics import (BandSpectrum, CameraGeometry, band_spectrum, bilinear, gau
                       to_subject, vignetting)
 from ._sensor import e_per_dn, expose, mosaic
 from .devices import ExposureSettings
+from .manifest import atomic_write
 from .rig import BandConfig, RigConfig, load_rig, rig_from_dict
 from .scene import SceneConfig, SkinScene, load_scene
 from .simulation_settings import SimulationError, SimulationSettings, load_simulation_settings
@@ -352,14 +351,4 @@ def _frame_seed(seed: int, state: str, position: int, count: int) -> int:
 
 
 def _write_json(path: Path, data: dict) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".json")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2)
-            f.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())

@@ -26,8 +26,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -38,7 +36,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..acquire.manifest import now_iso, read_manifest
+from ..acquire.manifest import atomic_write, now_iso, read_manifest
 from .align import align_bands, apply_alignment
 from .checks import Flag, alignment_flags, check_reference, exposure_flags, gray_card_flags, select_frames, verify_files
 from .corrections import band_factors, gray_card_level, reflectance_ratio, roi_to_superpixels, subtract_dark
@@ -354,13 +352,4 @@ def _stage_clock(timings: dict[str, float]):
 
 
 def _write_json(path: Path, data: dict) -> Path:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".calibration-", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2, allow_nan=False)
-            f.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return atomic_write(path, (json.dumps(data, indent=2, allow_nan=False) + "\n").encode(), prefix=".calibration-")
