@@ -1,0 +1,100 @@
+"""How well can any fit know each pixel's parameters? The Cramér–Rao bound of the map fit (on demand:
+``pytest -m bench tests/bench/test_bench_identifiability.py -s``).
+
+The heterogeneous renderer's Jacobian by forward differences (relative step 10⁻⁴ of each parameter,
+float64) for a free block of ``block``² pixels at the centre of a 64² window of the default scene
+(Fitzpatrick III interior; no veins or hairs), every other pixel held at the truth and the scale known
+— so the bound is optimistic: freeing more of the field only raises it. Noise per band is the
+simulated camera's, measured as the RMS of calibrated cube minus truth on the default 256² session
+(seed 0; its 64² session carries the same per-pixel noise): ``CAMERA_NOISE``. The Fisher information
+J^T Σ^{-1} J gives the standard deviation of log C per parameter (≈ the relative error of an unbiased
+estimate), reported as the median over the block, for three cases: all five maps free; β_m and C_bc
+known (three maps per pixel); each pixel's own five with its neighbours known ("local").
+
+Writes ``identifiability.csv``. The bound scales with the noise: ×0.1 noise, ×0.1 bound.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from skinlayers.acquire.scene import SkinScene, scene_from_dict
+from skinlayers.model import PARAMETER_NAMES, ModelSettings
+from skinlayers.model.illumination import Light
+from skinlayers.model.maps import SkinMaps
+from skinlayers.model.renderer import SkinRenderer
+
+pytestmark = pytest.mark.bench
+
+BANDS_NM = (430.0, 460.0, 490.0, 520.0, 550.0, 580.0, 610.0, 640.0, 670.0)
+#: RMS of (calibrated cube − truth) per band, default simulated session (measured, see the docstring)
+CAMERA_NOISE = (0.0043, 0.0034, 0.0033, 0.0031, 0.0032, 0.0036, 0.0049, 0.0078, 0.0155)
+
+
+def out_dir() -> Path:
+    d = Path(os.environ.get("SKINLAYERS_BENCH_DIR", "bench_results"))
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def bound(size: int = 64, block: int = 4, noise_factor: float = 1.0) -> dict[str, dict[str, float]]:
+    wl = torch.tensor(BANDS_NM, dtype=torch.float64)
+    scene = SkinScene(scene_from_dict({"base": {"preset": "III interior"}, "veins": {"count": 0}, "hairs": {"count": 0}}), seed=0)
+    mm = 7.5 / size
+    maps = scene.maps(mm, size, wl, dtype=torch.float64)
+    base = {n: getattr(maps, n).clone() for n in PARAMETER_NAMES}
+    renderer = SkinRenderer(ModelSettings())
+    light = Light("window", size_mm=7.5, border_mm=3.0)
+
+    def render(values: dict) -> torch.Tensor:
+        with torch.no_grad():
+            m = SkinMaps(*(values[n] for n in PARAMETER_NAMES), mm_per_pixel=mm)
+            return renderer.render(m, light, wl, under_gel=True, view_angle_deg=30.0).image[0].double()
+
+    image = render(base)
+    c0, h = size // 2 - block // 2, 1e-4
+    columns = []
+    for n in PARAMETER_NAMES:
+        for i in range(c0, c0 + block):
+            for j in range(c0, c0 + block):
+                values = {q: base[q].clone() for q in PARAMETER_NAMES}
+                values[n][0, i, j] *= 1.0 + h
+                columns.append(((render(values) - image) / h).reshape(-1))
+    sigma = torch.tensor(CAMERA_NOISE, dtype=torch.float64) * noise_factor
+    jac = torch.stack(columns, 1) / sigma.repeat_interleave(size * size)[:, None]
+    fisher = jac.T @ jac
+    npx = block * block
+
+    def sd(index: list[int]) -> torch.Tensor:
+        idx = torch.tensor(index)
+        return torch.linalg.pinv(fisher[idx][:, idx], hermitian=True).diagonal().sqrt()
+
+    every = sd(list(range(5 * npx))).reshape(5, npx)
+    three = sd([q * npx + p for q in (0, 2, 4) for p in range(npx)]).reshape(3, npx)
+    local = torch.stack([sd([q * npx + p for q in range(5)]) for p in range(npx)], 1)
+    return {
+        "all five free": {n: float(every[q].median()) for q, n in enumerate(PARAMETER_NAMES)},
+        "beta_m, C_bc known": {n: float(three[q].median()) for q, n in enumerate(("C_m", "C_he", "C_hd"))},
+        "own pixel only": {n: float(local[q].median()) for q, n in enumerate(PARAMETER_NAMES)},
+    }
+
+
+def test_cramer_rao_bound_of_the_map_fit():
+    rows = []
+    for block in (2, 4):
+        for case, values in bound(block=block).items():
+            rows.append({"block": block, "case": case, **{f"sd_log_{k}": round(v, 4) for k, v in values.items()}})
+            print(rows[-1])
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    with (out_dir() / "identifiability.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(rows)
+    # more free neighbours can only loosen the bound
+    c_hd = {(r["block"], r["case"]): r["sd_log_C_hd"] for r in rows}
+    assert c_hd[(4, "all five free")] >= c_hd[(2, "all five free")] * 0.999
