@@ -3,7 +3,6 @@ switched off in turn to show it matters, and the session folder left untouched."
 
 from __future__ import annotations
 
-import hashlib
 import json
 
 import numpy as np
@@ -12,18 +11,9 @@ import pytest
 from skinlayers.calibration import CalibrationSettings, calibrate_session, read_cube
 
 
-def _tree_hash(folder) -> str:
-    h = hashlib.sha256()
-    for path in sorted(folder.rglob("*")):
-        h.update(str(path.relative_to(folder)).encode())
-        if path.is_file():
-            h.update(path.read_bytes())
-    return h.hexdigest()
-
-
 @pytest.fixture(scope="module")
-def baseline(synthetic_session, tmp_path_factory):
-    before = _tree_hash(synthetic_session.path)
+def baseline(synthetic_session, tmp_path_factory, synth):
+    before = synth.tree_hash(synthetic_session.path)
     steps = []
     out = tmp_path_factory.mktemp("out") / "cube"
     result = calibrate_session(synthetic_session.path, out, progress=lambda *a: steps.append(a))
@@ -80,9 +70,9 @@ def test_outputs_are_complete_and_readable(baseline, synthetic_session, synth):
     assert steps[-1][0] == steps[-1][1] and [s[0] for s in steps] == sorted(s[0] for s in steps)
 
 
-def test_the_session_folder_is_left_untouched(baseline, synthetic_session):
+def test_the_session_folder_is_left_untouched(baseline, synthetic_session, synth):
     result, before, _ = baseline
-    assert _tree_hash(synthetic_session.path) == before
+    assert synth.tree_hash(synthetic_session.path) == before
     assert synthetic_session.path.resolve() not in result.out_dir.parents
 
 
