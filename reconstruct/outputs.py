@@ -15,6 +15,7 @@ from pathlib import Path
 import torch
 import yaml
 
+from ..acquire.manifest import atomic_write
 from ..model import PARAMETER_NAMES
 from ..model.maps_io import write_maps
 from .checks import FLAG_BITS
@@ -93,9 +94,6 @@ def write_outputs(fit: MapFit, settings: FitSettings, out_dir: str | Path, sourc
         {"wavelengths_nm": [float(w) for w in fit.wavelength_nm], "scale": float(fit.scale), "method": settings.method,
          "software_version": _version(), "flag_bits": json.dumps(FLAG_BITS)},
     )
-    summary = fit_summary(fit, settings, source)
-    json_path = out / "fit.json"
-    json_path.write_text(json.dumps(summary, indent=1, allow_nan=True))
     settings_path = out / "fit_settings.yaml"
     settings_path.write_text(
         "# Resolved fit settings of this run: `skinlayers reconstruct CUBE --config fit_settings.yaml` re-makes it.\n"
@@ -105,4 +103,6 @@ def write_outputs(fit: MapFit, settings: FitSettings, out_dir: str | Path, sourc
     from .report import plot_report  # noqa: PLC0415 (matplotlib only when a report is written)
 
     plot_report(fit, measured if measured is not None else fit.image - fit.residual, report_path)
+    # fit.json last and atomically: its presence says the outputs are complete (the CLI keys on it)
+    json_path = atomic_write(out / "fit.json", json.dumps(fit_summary(fit, settings, source), indent=1, allow_nan=True).encode())
     return {"maps": maps_path, "fit": json_path, "settings": settings_path, "report": report_path}
