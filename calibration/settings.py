@@ -10,9 +10,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from ..model.settings import format_validation_error, read_yaml_mapping
+from ..model.settings import load_settings
 from .errors import CalibrationError
 
 __all__ = ["CalibrationSettings", "SettingsFileError", "load_calibration_settings"]
@@ -137,13 +137,4 @@ def load_calibration_settings(path: str | Path | None = None, **overrides) -> Ca
 
     Raises ``SettingsFileError`` naming the file, the key and the problem.
     """
-    data: dict = {}
-    source = "calibration settings"
-    if path is not None:
-        source = str(path)
-        data = dict(read_yaml_mapping(path, SettingsFileError, "of settings"))
-    data.update(overrides)
-    try:
-        return CalibrationSettings.model_validate(data)
-    except ValidationError as exc:
-        raise SettingsFileError(f"{source}: {format_validation_error(exc)}") from None
+    return load_settings(CalibrationSettings, path, SettingsFileError, "calibration settings", overrides)

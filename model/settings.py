@@ -209,6 +209,17 @@ def read_yaml_mapping(path: str | Path, error: type[Exception], what: str = "") 
     return data
 
 
+def load_settings(cls, path: str | Path | None, error: type[Exception], name: str, overrides: dict | None = None):
+    """Settings of pydantic class ``cls``: embedded defaults, then a YAML file if given, then ``overrides``.
+    Raises ``error`` naming the file (or ``name``), the key and the problem."""
+    data = dict(read_yaml_mapping(path, error, "of settings")) if path is not None else {}
+    data.update(overrides or {})
+    try:
+        return cls.model_validate(data)
+    except ValidationError as exc:
+        raise error(f"{path if path is not None else name}: {format_validation_error(exc)}") from None
+
+
 def load_model_settings(path: str | Path | None = None) -> ModelSettings:
     """Embedded defaults, overridden by a YAML file if one is given.
 

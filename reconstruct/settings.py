@@ -10,10 +10,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from ..model import ModelSettings
-from ..model.settings import format_validation_error, read_yaml_mapping
+from ..model.settings import load_settings
 
 __all__ = ["FitSettings", "FitSettingsError", "load_fit_settings"]
 
@@ -117,13 +117,4 @@ def load_fit_settings(path: str | Path | None = None, **overrides) -> FitSetting
 
     Raises ``FitSettingsError`` naming the file, the key and the problem.
     """
-    data: dict = {}
-    source = "fit settings"
-    if path is not None:
-        source = str(path)
-        data = dict(read_yaml_mapping(path, FitSettingsError, "of settings"))
-    data.update({k: v for k, v in overrides.items() if v is not None})
-    try:
-        return FitSettings.model_validate(data)
-    except ValidationError as exc:
-        raise FitSettingsError(f"{source}: {format_validation_error(exc)}") from None
+    return load_settings(FitSettings, path, FitSettingsError, "fit settings", {k: v for k, v in overrides.items() if v is not None})
