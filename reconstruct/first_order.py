@@ -58,7 +58,7 @@ def paper_forward_differences(problem: LevelProblem, x0, log_scale0, settings, p
             moved = problem.evaluate(shifted, ev.log_scale)
             derivative = (moved.residual - ev.residual) / h  # the residual's change = the prediction's
             grad[:, k] = (derivative * ev.residual).sum(1) / (derivative**2).sum(1).mean().clamp_min(1e-30)
-        col = problem.at_pixels(ev.image) * torch.exp(ev.log_scale) * problem.band_weight
+        col = problem.at_pixels(ev.image) * torch.exp(ev.log_scale) * problem.row_weight
         grad_scale = (col * ev.residual).sum() / (col**2).sum().clamp_min(1e-30) if settings.free_scale else torch.zeros((), dtype=x0.dtype)
         if eta is None:
             eta = settings.learning_rate / max(float(grad.abs().max()), float(grad_scale.abs()), 1e-30)
@@ -95,7 +95,7 @@ def adam(problem: LevelProblem, x0, log_scale0, settings, progress=None) -> Opti
     converged = False
     it = 0
     for it in range(1, _FIRST_ORDER_CAP * settings.max_iterations + 1):
-        col = problem.at_pixels(ev.image) * torch.exp(ev.log_scale) * problem.band_weight
+        col = problem.at_pixels(ev.image) * torch.exp(ev.log_scale) * problem.row_weight
         g_scale = (col * ev.residual).sum() if settings.free_scale else torch.zeros((), dtype=x.dtype)
         # per-pixel gradient; the scale's share is spread over the pixels so its moments stay comparable
         g = torch.cat([ev.grad.T, (g_scale / problem.n_pixels).expand(problem.n_pixels, 1)], dim=1)

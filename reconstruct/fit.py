@@ -29,6 +29,7 @@ from .checks import DataChecks, check_cube, flag_value
 from .gauss_newton import curvature_and_columns, solve_step
 from .optimizers import METHODS, OptimResult
 from .problem import LevelProblem, RenderCounter
+from .schur import marginal_variance, solve_split_step
 from .settings import FitSettings
 from .start import STARTS
 from .unknowns import bounds, dparams_dx, extend, pyramid, to_params, upsample
@@ -143,7 +144,7 @@ def fit_cube(
     result = problem = None
     for i, level in enumerate(levels):
         problem = LevelProblem(renderer, level, wl, checks.bands_used, view_angle_deg=view, border_mm=settings.border_mm,
-                               band_fwhm_nm=fwhm, counter=counter)
+                               band_fwhm_nm=fwhm, map_cell_mm=settings.cells, counter=counter)
         if x is None:
             say(FitEvent("start", i, len(levels), pixels=pixels))
             x = STARTS[settings.start](problem, dtype=dtype, device=dev)
@@ -154,6 +155,12 @@ def fit_cube(
         result = METHODS[settings.method](
             problem, x, log_scale, settings, lambda it, loss, i=i: say(FitEvent("fit", i, len(levels), it, loss, pixels))
         )
+        for _ in range(settings.robust_passes):
+            problem.pixel_weight = robust_weights(pixel_rms(problem, result.evaluation), settings.robust_scale)
+            result = METHODS[settings.method](
+                problem, result.x, result.log_scale, settings,
+                lambda it, loss, i=i: say(FitEvent("fit", i, len(levels), it, loss, pixels)),
+            )
         history += [(t - cpu0, loss, i) for t, loss in result.history]
         records.append(_level_record(problem, result, time.process_time() - c0, counter.forward - f0, counter.backward - b0))
         x, log_scale = extend(result.x, problem.index), result.log_scale
@@ -166,14 +173,28 @@ def fit_cube(
     )
 
 
+def pixel_rms(problem: LevelProblem, ev) -> torch.Tensor:
+    """Each loss pixel's residual RMS over the used bands, unweighted ``(N,)``."""
+    used = problem.band_weight > 0
+    pred = problem.at_pixels(ev.image) * torch.exp(ev.log_scale)
+    return torch.sqrt(((pred - problem.target)[:, used] ** 2).mean(1))
+
+
+def robust_weights(rms: torch.Tensor, scale: float) -> torch.Tensor:
+    """Cauchy weights 1/(1 + (rms/c)²), c = ``scale`` × the median pixel's RMS (Holland & Welsch 1977):
+    a pixel the model cannot explain (a hair, a vein) pulls the shared unknowns less."""
+    c = scale * rms.median().clamp_min(1e-12)
+    return 1.0 / (1.0 + (rms / c) ** 2)
+
+
 def _level_record(problem: LevelProblem, result: OptimResult, cpu_s: float, forward: int, backward: int) -> dict:
-    n = problem.n_pixels * int((problem.band_weight > 0).sum())
     return {
         "shape": list(problem.level.shape),
+        "map_grids": problem.layout.describe(),
         "mm_per_pixel": problem.level.mm_per_pixel,
         "iterations": result.iterations,
         "converged": result.converged,
-        "rms_residual": math.sqrt(2.0 * result.evaluation.loss / max(n, 1)),
+        "rms_residual": float(pixel_rms(problem, result.evaluation).pow(2).mean().sqrt()),
         "scale": float(torch.exp(result.log_scale)),
         "forward_renders": forward,
         "backward_renders": backward,
@@ -195,8 +216,18 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     jac, col = curvature_and_columns(problem, ev)
     lam = torch.full((problem.n_pixels,), 1e-3, dtype=jac.dtype, device=jac.device)
     grad = ev.grad.T if ev.grad is not None else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
-    dx, _, _ = solve_step(jac, col, grad, (col * ev.residual).sum(), lam, 1e-3, settings.free_scale)
-    sigma_pix = _sigma(problem, jac, ev.residual, x)
+    if problem.layout.per_pixel:
+        dx, _, _ = solve_step(jac, col, grad, (col * ev.residual).sum(), lam, 1e-3, settings.free_scale)
+    else:
+        dx, _, _ = solve_split_step(jac, col, grad, (col * ev.residual).sum(1), lam, 1e-3, settings.free_scale, problem.layout, problem.pixels)
+    # uncertainty from the unweighted problem: the robust weights shape the estimate, not the camera's noise
+    problem.pixel_weight = None
+    jac, col = curvature_and_columns(problem, ev)
+    plain = problem.at_pixels(residual) * problem.band_weight
+    if problem.layout.per_pixel:
+        sigma_pix = _sigma(problem, jac, plain, x)
+    else:
+        sigma_pix = _sigma_shared(problem, jac, col, plain, x, settings.free_scale)
     # a pixel has converged when the step still proposed moves no parameter by half its uncertainty
     remaining = (problem.at_pixels(dparams_dx(x)) * dx).abs()
     moving_pix = (remaining > 0.5 * sigma_pix.to(remaining.dtype)).any(1)
@@ -224,6 +255,20 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
         "maps": maps, "scale": float(scale), "image": image, "residual": residual, "residual_rms": residual_rms,
         "flags": flags.reshape(h, w), "sigma": sigma.reshape(5, h, w),
     }
+
+
+def _sigma_shared(problem: LevelProblem, jac, col, residual, x, free_scale: bool) -> torch.Tensor:
+    """Per-pixel standard deviation of each parameter ``(N, 5)`` when maps share nodes: the inverse
+    Fisher information of the whole fit (``schur.marginal_variance``), each band's noise σ from the
+    residual, mapped from x to the parameter at the pixel."""
+    used = problem.band_weight > 0
+    n_used = int(used.sum())
+    n_unknowns = len(problem.layout.fine) * problem.n_pixels + problem.layout.n_nodes + int(free_scale)
+    dof = max(n_used * problem.n_pixels - n_unknowns, 1) / (n_used * problem.n_pixels)
+    sd_band = torch.sqrt((residual.double() ** 2).mean(0) / dof).clamp_min(1e-12)
+    weight = torch.where(used, 1.0 / sd_band, torch.zeros_like(sd_band))
+    var = marginal_variance(jac.double() * weight[None, :, None], col.double() * weight[None, :], free_scale, problem.layout, problem.pixels)
+    return var.sqrt() * problem.at_pixels(dparams_dx(x)).double()
 
 
 def _sigma(problem: LevelProblem, jac: torch.Tensor, residual: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

@@ -31,6 +31,7 @@ import torch
 
 from .optimizers import OptimResult, register_method
 from .problem import Evaluation, LevelProblem
+from .schur import solve_split_step
 from .unknowns import X_LIMIT
 
 __all__ = ["curvature_and_columns", "gauss_newton", "solve_step"]
@@ -47,8 +48,8 @@ def curvature_and_columns(problem: LevelProblem, ev: Evaluation) -> tuple[torch.
     hom, jac = problem.homogeneous_jacobian(x_pix)
     het = problem.at_pixels(ev.image)  # (N, L)
     scale = torch.exp(ev.log_scale)
-    factor = (het / hom.clamp_min(1e-12)).clamp(0.0, 2.0) * scale * problem.band_weight
-    return jac * factor[..., None], het * scale * problem.band_weight
+    factor = (het / hom.clamp_min(1e-12)).clamp(0.0, 2.0) * scale * problem.row_weight
+    return jac * factor[..., None], het * scale * problem.row_weight
 
 
 def solve_step(
@@ -88,11 +89,26 @@ def solve_step(
     return (-(a_inv_g + a_inv_b * d_scale)).to(dtype), d_scale.to(dtype), a.to(dtype)
 
 
-def _apply(problem: LevelProblem, x: torch.Tensor, dx: torch.Tensor) -> torch.Tensor:
+def _apply(problem: LevelProblem, x: torch.Tensor, dx: torch.Tensor, z: torch.Tensor, dz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The unknowns after a step: fine maps move at the loss pixels, coarse maps follow their nodes."""
     out = x.clone()
     flat = out.reshape(5, -1)
-    flat[:, problem.pixels] = (flat[:, problem.pixels] + dx.T).clamp(-X_LIMIT, X_LIMIT)
-    return out
+    fine = problem.layout.fine
+    rows = torch.tensor(fine, device=x.device)
+    moved = (flat[rows][:, problem.pixels] + dx[:, fine].T).clamp(-X_LIMIT, X_LIMIT)
+    flat[rows[:, None], problem.pixels[None, :]] = moved
+    if problem.layout.per_pixel:
+        return out, z
+    z = (z + dz).clamp(-X_LIMIT, X_LIMIT)
+    return problem.layout.assemble(out, z), z
+
+
+def _step(problem: LevelProblem, jac, col, grad, residual, lam, lam_scale, free_scale):
+    """(dx ``(N, 5)``, dz, d log s) of the damped system: per-pixel 5×5 blocks, or with shared nodes."""
+    if problem.layout.per_pixel:
+        dx, ds, _ = solve_step(jac, col, grad, (col * residual).sum(), lam, lam_scale, free_scale)
+        return dx, jac.new_zeros(0), ds
+    return solve_split_step(jac, col, grad, (col * residual).sum(1), lam, lam_scale, free_scale, problem.layout, problem.pixels)
 
 
 class _Anderson:
@@ -124,12 +140,15 @@ class _Anderson:
 
 def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None, *, exact: bool) -> OptimResult:
     """LM iterations until the convergence test holds (``exact``: gradient from the backward pass)."""
+    z = problem.layout.project(x0)
+    if not problem.layout.per_pixel:
+        x0 = problem.layout.assemble(x0, z)
     ev = problem.evaluate(x0, log_scale0, grad=exact)
     n = problem.n_pixels
     lam = torch.full((n,), _LAMBDA0, dtype=x0.dtype, device=x0.device)
     lam_scale = _LAMBDA0
     history = [(time.process_time(), ev.loss)]
-    accel = _Anderson(settings.anderson_memory) if settings.anderson_memory > 0 else None
+    accel = _Anderson(settings.anderson_memory) if settings.anderson_memory > 0 and problem.layout.per_pixel else None
     rejections = 0
     converged = False
     it = 0
@@ -139,17 +158,19 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
         if jac is None:
             jac, col = curvature_and_columns(problem, ev)
         grad = ev.grad.T if exact else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
-        grad_scale = (col * ev.residual).sum()
-        dx, ds, _ = solve_step(jac, col, grad, grad_scale, lam, lam_scale, settings.free_scale)
-        dx = dx.clamp(-_MAX_STEP, _MAX_STEP)
+        dx, dz, ds = _step(problem, jac, col, grad, ev.residual, lam, lam_scale, settings.free_scale)
+        dx, dz = dx.clamp(-_MAX_STEP, _MAX_STEP), dz.clamp(-_MAX_STEP, _MAX_STEP)
+        if not problem.layout.per_pixel:  # the coarse maps' change where the clamped nodes put it
+            dx[:, problem.layout.coarse] = problem.layout.at_pixels(dz, problem.pixels)
         step = dx.abs().amax(dim=1)
         accelerated = accel is not None and rejections == 0
         if accelerated:
-            z = torch.cat([problem.at_pixels(ev.x).reshape(-1), ev.log_scale.reshape(1)])
-            z_next = accel.next_point(z, torch.cat([dx.reshape(-1), ds.reshape(1)]))
-            dx = (z_next[:-1] - z[:-1]).reshape(n, 5).clamp(-_MAX_STEP, _MAX_STEP)
-            ds = z_next[-1] - z[-1]
-        trial = problem.evaluate(_apply(problem, ev.x, dx), ev.log_scale + ds, grad=exact)
+            point = torch.cat([problem.at_pixels(ev.x).reshape(-1), ev.log_scale.reshape(1)])
+            point_next = accel.next_point(point, torch.cat([dx.reshape(-1), ds.reshape(1)]))
+            dx = (point_next[:-1] - point[:-1]).reshape(n, 5).clamp(-_MAX_STEP, _MAX_STEP)
+            ds = point_next[-1] - point[-1]
+        x_trial, z_trial = _apply(problem, ev.x, dx, z, dz)
+        trial = problem.evaluate(x_trial, ev.log_scale + ds, grad=exact)
         before = (ev.residual**2).sum(1)
         after = (trial.residual**2).sum(1)
         v = jac @ dx[..., None]
@@ -160,7 +181,7 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
             lam = torch.where(gain > 0.75, lam / 3.0, torch.where(gain < 0.25, lam * 2.0, lam)).clamp(_LAMBDA_MIN, 1e7)
             lam_scale = max(lam_scale / 3.0, 1e-7)
             relative = (ev.loss - trial.loss) / max(ev.loss, 1e-300)
-            ev, jac, rejections = trial, None, 0
+            ev, z, jac, rejections = trial, z_trial, None, 0
             history.append((time.process_time(), ev.loss))
             if progress is not None:
                 progress(it, ev.loss)

@@ -60,6 +60,7 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
         "method": settings.method,
         "start": settings.start,
         "scale": fit.scale,
+        "map_grids": fit.levels[-1]["map_grids"] if fit.levels else None,
         "converged": all(level["converged"] for level in fit.levels),
         "iterations": sum(level["iterations"] for level in fit.levels),
         "levels": fit.levels,

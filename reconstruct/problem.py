@@ -20,6 +20,9 @@ R_d(p) times the exit factor (``model/radiometry.py``), from the renderer's own 
 Jacobian with respect to the unknowns, by forward-mode autodiff, batched over pixels: the cheap 5×5
 curvature of the Gauss–Newton methods (``optimizers.py``).
 
+``layout`` (``grids.MapLayout``) says which maps the fit takes per pixel and which on coarser nodes
+(``map_cell_mm``); the render always takes all five maps per pixel.
+
 Shapes: unknowns ``(5, H, W)``; residuals ``(N, L)`` over the N pixels in the loss.
 """
 
@@ -37,6 +40,7 @@ from ..model.illumination import Light
 from ..model.maps import SkinMaps
 from ..model.radiometry import exit_factor
 from ..model.renderer import SkinRenderer
+from .grids import MapLayout
 from .unknowns import Level, extend, extension_index, params_of, to_params
 
 __all__ = ["Evaluation", "LevelProblem", "RenderCounter"]
@@ -83,6 +87,7 @@ class LevelProblem:
         view_angle_deg: float,
         border_mm: float,
         band_fwhm_nm: float = 0.0,
+        map_cell_mm: dict[str, float] | None = None,
         counter: RenderCounter | None = None,
     ) -> None:
         self.renderer = renderer
@@ -100,6 +105,9 @@ class LevelProblem:
         self.mask = level.mask
         self.pixels = level.mask.reshape(-1).nonzero()[:, 0]
         self.index = extension_index(level.mask)
+        self.layout = MapLayout(level.shape, level.mm_per_pixel, map_cell_mm, level.target.dtype, level.target.device)
+        #: robust weight of each loss pixel ``(N,)`` (None: all 1), set between passes by ``fit.fit_cube``
+        self.pixel_weight: torch.Tensor | None = None
         self.band_weight = bands_used.to(level.target.dtype).to(level.target.device)
         self.target = level.target.reshape(level.target.shape[0], -1)[:, self.pixels].T.contiguous()  # (N, L)
         self.counter = counter or RenderCounter()
@@ -112,6 +120,14 @@ class LevelProblem:
             offsets = torch.tensor([0.0, -math.sqrt(3.0) * sigma, math.sqrt(3.0) * sigma], dtype=torch.float64)
             self.band_nodes_nm = (self.wavelength_nm[:, None] + offsets[None, :]).reshape(-1)
             self.band_weights = torch.tensor([2.0 / 3.0, 1.0 / 6.0, 1.0 / 6.0], dtype=torch.float64)
+
+    @property
+    def row_weight(self) -> torch.Tensor:
+        """Weight of each loss pixel's residual at each band ``(N, L)`` (or ``(L,)`` when every pixel
+        counts fully): the band's use times the square root of the pixel's robust weight."""
+        if self.pixel_weight is None:
+            return self.band_weight
+        return self.band_weight[None, :] * self.pixel_weight.sqrt()[:, None]
 
     @property
     def n_pixels(self) -> int:
@@ -167,7 +183,7 @@ class LevelProblem:
 
     def _residual(self, image: torch.Tensor, log_scale: torch.Tensor) -> torch.Tensor:
         pred = self.at_pixels(image) * torch.exp(log_scale)
-        return (pred - self.target) * self.band_weight
+        return (pred - self.target) * self.row_weight
 
     def homogeneous_jacobian(self, x_pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Homogeneous reflectance factor ``(N, L)`` of each pixel's parameters ``x_pixels`` ``(5, N)``

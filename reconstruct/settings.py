@@ -10,16 +10,24 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from ..model import ModelSettings
 from ..model.settings import load_settings
 
-__all__ = ["FitSettings", "FitSettingsError", "load_fit_settings"]
+__all__ = ["DEFAULT_MAP_CELL_MM", "FitSettings", "FitSettingsError", "load_fit_settings"]
 
 
 class FitSettingsError(ValueError):
     """A fit settings file or value that cannot be used; the message names the file and key."""
+
+
+#: Node spacing (mm) per map for the Gauss–Newton methods, measured (configs/fit.yaml, docs/reconstruct.md):
+#: melanin and epidermal blood per pixel; β_m on 1.5-mm nodes; carotene one value per patch; dermal blood
+#: on 0.375-mm nodes (20 across the 7.5-mm window).
+DEFAULT_MAP_CELL_MM = {"C_m": 0.0, "beta_m": 1.5, "C_he": 0.0, "C_bc": 100.0, "C_hd": 0.375}
+_PER_PIXEL = dict.fromkeys(DEFAULT_MAP_CELL_MM, 0.0)
+_FIRST_ORDER = ("adam", "paper-fd")
 
 
 class FitSettings(BaseModel):
@@ -63,7 +71,30 @@ class FitSettings(BaseModel):
             "default: the cube meta's 'band_fwhm_nm', else 10 (PHYSICS.md §7); 0: treat bands as lines."
         ),
     )
-    free_scale: bool = Field(True, description="Fit one global radiometric scale (DWRR08 §6.4 found 1.02).")
+    map_cell_mm: dict[str, float] | None = Field(
+        None,
+        description=(
+            "Node spacing (mm) of each map's own grid, bilinearly interpolated onto the pixels; 0: per pixel; a "
+            "spacing as large as the window: one value for the patch. Maps not named keep the default. "
+            "None: the measured default (gn, gn-hom: DEFAULT_MAP_CELL_MM) or per pixel (adam, paper-fd)."
+        ),
+    )
+    robust_passes: int = Field(
+        1, ge=0, le=5,
+        description=(
+            "After each level's fit, refit this many times with each pixel weighted by a Cauchy weight of its "
+            "residual (hairs, veins: what the model does not hold pulls the shared unknowns less)."
+        ),
+    )
+    robust_scale: float = Field(2.0, gt=0, description="The Cauchy weight's scale, in multiples of the median pixel's residual RMS.")
+    free_scale: bool = Field(
+        False,
+        description=(
+            "Fit one global radiometric scale (DWRR08 §6.4 found 1.02). Off: the calibration's Spectralon sets the "
+            "scale. Measured on simulated sessions: with β_m and C_bc on nodes, a free scale trades 3–4% of "
+            "brightness against them (64² session: scale 1.036, β_m off by 0.80 instead of 0.09)."
+        ),
+    )
     max_iterations: int = Field(60, ge=1, description="Iteration cap per level (a safety net: the convergence test stops first).")
     ftol: float = Field(
         1e-3,
@@ -103,13 +134,42 @@ class FitSettings(BaseModel):
     dtype: Literal["float32", "float64"] = Field("float32", description="Precision of the renders.")
     model: ModelSettings = Field(default_factory=ModelSettings, description="The skin model (keys of configs/model.yaml).")
 
+    @field_validator("map_cell_mm", mode="before")
+    @classmethod
+    def _cells(cls, value):
+        """A file names only the maps it changes; the others keep the Gauss–Newton default."""
+        return {**DEFAULT_MAP_CELL_MM, **value} if isinstance(value, dict) else value
+
     @model_validator(mode="after")
     def _method(self) -> "FitSettings":
         from .optimizers import METHODS  # noqa: PLC0415 (the registry imports settings' users)
 
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {', '.join(sorted(METHODS))}, got {self.method!r}")
+        if self.map_cell_mm is not None:
+            unknown = set(self.map_cell_mm) - set(DEFAULT_MAP_CELL_MM)
+            if unknown:
+                raise ValueError(f"map_cell_mm: unknown map(s) {', '.join(sorted(unknown))}; the maps are {', '.join(DEFAULT_MAP_CELL_MM)}")
+            if any(v < 0 for v in self.map_cell_mm.values()):
+                raise ValueError(f"map_cell_mm: a node spacing must be ≥ 0 mm (0: per pixel), got {self.map_cell_mm}")
+        if self.coarse_maps and self.method in _FIRST_ORDER:
+            raise ValueError(
+                f"method {self.method} fits every map per pixel; map_cell_mm puts {', '.join(self.coarse_maps)} on nodes "
+                "(use gn-hom or gn, or leave map_cell_mm out)"
+            )
         return self
+
+    @property
+    def cells(self) -> dict[str, float]:
+        """The node spacing of every map as the fit uses it (``map_cell_mm`` resolved)."""
+        if self.map_cell_mm is not None:
+            return dict(self.map_cell_mm)
+        return dict(_PER_PIXEL if self.method in _FIRST_ORDER else DEFAULT_MAP_CELL_MM)
+
+    @property
+    def coarse_maps(self) -> list[str]:
+        """The maps fitted on nodes rather than per pixel."""
+        return [k for k, v in self.cells.items() if v > 0]
 
 
 def load_fit_settings(path: str | Path | None = None, **overrides) -> FitSettings:

@@ -15,7 +15,8 @@ from skinlayers.reconstruct.fit import fit_cube
 from skinlayers.reconstruct.outputs import fit_summary
 from skinlayers.reconstruct.settings import FitSettings
 
-FAST = FitSettings(max_iterations=15)
+# carotene per pixel, as for the small cube of the same noise (conftest.SMALL_FIT)
+FAST = FitSettings(max_iterations=15, map_cell_mm={"C_bc": 0.0})
 
 
 def _flag(fit, name):

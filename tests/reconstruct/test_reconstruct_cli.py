@@ -37,7 +37,8 @@ def _invoke(args):
 @pytest.fixture(scope="module")
 def run(session, tmp_path_factory):
     config = tmp_path_factory.mktemp("config") / "fit.yaml"
-    config.write_text("high_residual_factor: 3.5\n")  # changes flags only, so the maps must equal small_fit's
+    # changes flags only, so the maps must equal small_fit's (the same model: carotene per pixel)
+    config.write_text("high_residual_factor: 3.5\nmap_cell_mm: {C_bc: 0}\n")
     result = _invoke(["reconstruct", str(session), "--config", str(config), "--device", "cpu"])
     return result, config
 
@@ -74,7 +75,8 @@ def test_reconstruct_a_session_writes_every_output(run, session):
     assert summary["view_angle_source"] == "cube meta camera_angle_deg"
     assert abs(sum(summary["pca"]["explained_ratio"]) - 1.0) < 1e-9
     resolved = yaml.safe_load((out / "fit_settings.yaml").read_text())
-    assert FitSettings.model_validate(resolved) == FitSettings(high_residual_factor=3.5)
+    assert FitSettings.model_validate(resolved) == FitSettings(high_residual_factor=3.5, map_cell_mm={"C_bc": 0})
+    assert summary["map_grids"]["C_bc"] == "pixel" and summary["map_grids"]["C_hd"] == "pixel"  # 24²: under two pixels
     assert "maps:" in result.output and "report:" in result.output
     # a second run into the same folder is refused unless forced
     again = _invoke(["reconstruct", str(session), "--config", str(config)])
