@@ -98,3 +98,57 @@ def test_cramer_rao_bound_of_the_map_fit():
     # more free neighbours can only loosen the bound
     c_hd = {(r["block"], r["case"]): r["sd_log_C_hd"] for r in rows}
     assert c_hd[(4, "all five free")] >= c_hd[(2, "all five free")] * 0.999
+
+
+def shared_bound(preset: str = "III interior", pixels=(1, 16, 64, 256, 1024)) -> list[dict]:
+    """The homogeneous (point) model's bound when some maps are one value over ``n`` pixels and the
+    others per pixel: the Fisher information of the shared values is n × the Schur complement of the
+    per-pixel block (every pixel alike), the per-pixel values' variance A⁻¹ + X Cov X^T. No cross-talk
+    (so optimistic for C_hd, whose neighbours blur it); noise ``CAMERA_NOISE``."""
+    from skinlayers.model import TABLE2, SkinModel, SkinParams
+
+    model = SkinModel(ModelSettings())
+    wl = torch.tensor(BANDS_NM, dtype=torch.float64)
+    noise = torch.tensor(CAMERA_NOISE, dtype=torch.float64)
+    p0 = torch.tensor([TABLE2[preset][n] for n in PARAMETER_NAMES], dtype=torch.float64).clamp_min(1e-6)
+
+    def reflectance(log_p: torch.Tensor) -> torch.Tensor:
+        p = torch.exp(log_p)
+        return model.diffuse_reflectance(SkinParams(*(v.reshape(1) for v in p)), wl, method="exact")[0]
+
+    jac = torch.autograd.functional.jacobian(reflectance, torch.log(p0)) / noise[:, None]
+    fisher = jac.T @ jac
+    rows = []
+    for shared in ((), (1, 3), (1, 3, 4)):
+        fine = [k for k in range(5) if k not in shared]
+        a_inv = torch.linalg.inv(fisher[fine][:, fine])
+        for n in pixels if shared else (1,):
+            row = {"shared": ", ".join(PARAMETER_NAMES[k] for k in shared) or "none", "pixels_per_value": n}
+            var = torch.zeros(5, dtype=torch.float64)
+            if shared:
+                b = fisher[fine][:, list(shared)]
+                schur = fisher[list(shared)][:, list(shared)] - b.T @ a_inv @ b
+                cov = torch.linalg.inv(n * schur)
+                x = a_inv @ b
+                var[list(shared)] = cov.diagonal()
+                var[fine] = (a_inv + x @ cov @ x.T).diagonal()
+            else:
+                var[fine] = a_inv.diagonal()
+            rows.append({**row, **{f"sd_log_{PARAMETER_NAMES[k]}": round(float(var[k].sqrt()), 4) for k in range(5)}})
+    return rows
+
+
+def test_bound_with_maps_on_nodes():
+    """Why β_m and carotene go on nodes: per pixel their noise leaks into C_m (correlation −0.93 and
+    −0.89 at III interior); shared over a node's pixels, C_m's bound falls ~4×. Writes
+    ``identifiability_shared.csv``."""
+    rows = shared_bound()
+    for row in rows:
+        print(row)
+    with (out_dir() / "identifiability_shared.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    alone = rows[0]["sd_log_C_m"]
+    shared = next(r for r in rows if r["shared"] == "beta_m, C_bc" and r["pixels_per_value"] == 64)["sd_log_C_m"]
+    assert shared < 0.5 * alone

@@ -4,8 +4,8 @@ Each fit runs in a fresh process (``reconstruct_run.py``) so that its peak memor
 are process CPU seconds (robust to the other load on a shared machine) beside wall seconds. Writes to
 ``bench_results/`` (or ``$SKINLAYERS_BENCH_DIR``):
 
-- ``reconstruct_methods.csv``: every optimiser on the same patch and grid (no pyramid, so all see the
-  same problem): CPU time and renders to convergence, the residual reached, and the CPU time each took
+- ``reconstruct_methods.csv``: every optimiser on the same patch, grid and model (no pyramid, every map
+  per pixel, the scale free: the paper's problem, so all see the same one): CPU time and renders to convergence, the residual reached, and the CPU time each took
   to reach the paper-style baseline's final loss;
 - ``reconstruct_sizes.csv``: the default fit (coarse-to-fine from 64²) against patch size, 64² to
   256² (512² with ``SKINLAYERS_BENCH_512=1``), with peak memory and accuracy.
@@ -62,13 +62,15 @@ def test_methods_side_by_side():
     """All optimisers on one 32² patch (Fitzpatrick IV), the grid fixed (no pyramid), paper's start
     and the homogeneous start for the default method."""
     base = {"size": 32, "preset": "IV exterior", "noise": 0.5, "truth_blur": "fft"}
+    # the paper's problem for every method: every map per pixel, the scale free, no robust refit
+    paper_model = {"map_cell_mm": dict.fromkeys(("C_m", "beta_m", "C_he", "C_bc", "C_hd"), 0.0), "free_scale": True, "robust_passes": 0}
     runs = [
         ("paper-fd", "paper"), ("adam", "homogeneous"), ("gn", "homogeneous"),
         ("gn-hom", "paper"), ("gn-hom", "homogeneous"),
     ]
     results = {}
     for method, start in runs:
-        results[(method, start)] = run({**base, "settings": {"method": method, "start": start, "coarsest_px": 0}})
+        results[(method, start)] = run({**base, "settings": {"method": method, "start": start, "coarsest_px": 0, **paper_model}})
     target = results[("paper-fd", "paper")]["history"][-1][1]
     rows = []
     for (method, start), r in results.items():
