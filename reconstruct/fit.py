@@ -61,7 +61,9 @@ Progress = Callable[[FitEvent], None]
 class MapFit:
     """The result on the cube's grid. Maps ``(1, H, W)``; ``image`` and ``residual`` ``(L, H, W)``
     (scaled prediction and prediction − measurement, all bands); ``residual_rms`` ``(H, W)`` over the
-    used bands; ``flags`` ``(H, W)`` int bit field (``checks.FLAG_BITS``); ``sigma`` ``(5, H, W)``."""
+    used bands; ``flags`` ``(H, W)`` int bit field (``checks.FLAG_BITS``); ``sigma`` ``(5, H, W)``;
+    ``history``: (CPU s, loss, level) after every accepted step of every pass (a robust pass lowers its
+    own, weighted loss)."""
 
     maps: SkinMaps
     scale: float
@@ -155,14 +157,18 @@ def fit_cube(
         result = METHODS[settings.method](
             problem, x, log_scale, settings, lambda it, loss, i=i: say(FitEvent("fit", i, len(levels), it, loss, pixels))
         )
+        passes = [result.iterations]
+        history += [(t - cpu0, loss, i) for t, loss in result.history]
         for _ in range(settings.robust_passes):
             problem.pixel_weight = robust_weights(pixel_rms(problem, result.evaluation), settings.robust_scale)
             result = METHODS[settings.method](
                 problem, result.x, result.log_scale, settings,
                 lambda it, loss, i=i: say(FitEvent("fit", i, len(levels), it, loss, pixels)),
             )
-        history += [(t - cpu0, loss, i) for t, loss in result.history]
+            passes.append(result.iterations)
+            history += [(t - cpu0, loss, i) for t, loss in result.history[1:]]
         records.append(_level_record(problem, result, time.process_time() - c0, counter.forward - f0, counter.backward - b0))
+        records[-1].update(iterations=sum(passes), iterations_per_pass=passes)
         x, log_scale = extend(result.x, problem.index), result.log_scale
         say(FitEvent("level", i, len(levels), result.iterations, result.evaluation.loss, pixels))
     say(FitEvent("final", len(levels) - 1, len(levels), pixels=pixels))
