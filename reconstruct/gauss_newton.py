@@ -39,6 +39,7 @@ __all__ = ["curvature_and_columns", "gauss_newton", "solve_step"]
 _MAX_STEP = 3.0  # largest change of any x in one step (a factor e³ in a small concentration)
 _LAMBDA0 = 1e-3
 _LAMBDA_MIN = 1e-7
+_FIRST_REJECTIONS = 12
 
 
 def curvature_and_columns(problem: LevelProblem, ev: Evaluation) -> tuple[torch.Tensor, torch.Tensor]:
@@ -198,7 +199,9 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
             rejections += 1
             if progress is not None:
                 progress(it, ev.loss)
-            if rejections >= 5 or float(step.max()) < settings.xtol:
+            # before any step is kept the start may be far (its shared nodes projected from noisy per-pixel
+            # fits): let the damping grow further before giving up
+            if rejections >= (5 if len(history) > 1 else _FIRST_REJECTIONS) or float(step.max()) < settings.xtol:
                 converged = True  # no step of any damping lowers the loss: a (local) optimum of this model
                 break
     if jac is None:

@@ -136,9 +136,17 @@ class MapLayout:
         """Map name → node grid ``[h, w]``, or "pixel"."""
         return {name: (list(self.grids[k].nodes) if k in self.grids else "pixel") for k, name in enumerate(PARAMETER_NAMES)}
 
-    def project(self, x: torch.Tensor) -> torch.Tensor:
-        """Unknowns ``(5, H, W)`` → z ``(n_nodes,)`` (least squares per coarse map)."""
-        parts = [self.grids[k].project(x[k]) for k in self.coarse]
+    def project(self, x: torch.Tensor, clip_quantile: float = 0.0) -> torch.Tensor:
+        """Unknowns ``(5, H, W)`` → z ``(n_nodes,)`` (least squares per coarse map), each map first
+        clipped to its ``clip_quantile``…1 − ``clip_quantile`` range (a start from noisy per-pixel fits
+        puts many values at the start's bounds)."""
+        parts = []
+        for k in self.coarse:
+            values = x[k]
+            if clip_quantile > 0:
+                q = torch.quantile(values.reshape(-1).double(), torch.tensor([clip_quantile, 1.0 - clip_quantile], dtype=torch.float64, device=values.device))
+                values = values.clamp(float(q[0]), float(q[1]))
+            parts.append(self.grids[k].project(values))
         return torch.cat(parts) if parts else x.new_zeros(0)
 
     def assemble(self, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:

@@ -133,4 +133,7 @@ def test_settings_fill_unnamed_maps_and_refuse_what_cannot_run():
         FitSettings(method="adam", map_cell_mm={"C_hd": 0.5})
     assert FitSettings(method="adam", map_cell_mm=dict.fromkeys(PARAMETER_NAMES, 0.0)).coarse_maps == []
     assert FitSettings(method="paper-fd").cells == dict.fromkeys(PARAMETER_NAMES, 0.0)  # the paper's per-pixel fit
+    assert FitSettings(method="gn").coarse_maps == []
+    with pytest.raises(ValueError, match="fits every map per pixel"):
+        FitSettings(method="gn", map_cell_mm={"beta_m": 1.0})
     assert FitSettings().cells == DEFAULT_MAP_CELL_MM
