@@ -105,10 +105,11 @@ def _apply(problem: LevelProblem, x: torch.Tensor, dx: torch.Tensor, z: torch.Te
 
 
 def _step(problem: LevelProblem, jac, col, grad, residual, lam, lam_scale, free_scale):
-    """(dx ``(N, 5)``, dz, d log s) of the damped system: per-pixel 5×5 blocks, or with shared nodes."""
+    """(dx ``(N, 5)``, dz, d log s, shared decrement) of the damped system: per-pixel 5×5 blocks, or
+    with shared nodes."""
     if problem.layout.per_pixel:
         dx, ds, _ = solve_step(jac, col, grad, (col * residual).sum(), lam, lam_scale, free_scale)
-        return dx, jac.new_zeros(0), ds
+        return dx, jac.new_zeros(0), ds, 0.0
     return solve_split_step(jac, col, grad, (col * residual).sum(1), lam, lam_scale, free_scale, problem.layout, problem.pixels)
 
 
@@ -155,11 +156,12 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
     it = 0
     step = torch.full((n,), float("nan"), dtype=x0.dtype, device=x0.device)
     jac = col = None
+    decrement = 0.0
     for it in range(1, settings.max_iterations + 1):
         if jac is None:
             jac, col = curvature_and_columns(problem, ev)
         grad = ev.grad.T if exact else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
-        dx, dz, ds = _step(problem, jac, col, grad, ev.residual, lam, lam_scale, settings.free_scale)
+        dx, dz, ds, decrement = _step(problem, jac, col, grad, ev.residual, lam, lam_scale, settings.free_scale)
         dx, dz = dx.clamp(-_MAX_STEP, _MAX_STEP), dz.clamp(-_MAX_STEP, _MAX_STEP)
         if not problem.layout.per_pixel:  # the coarse maps' change where the clamped nodes put it
             dx[:, problem.layout.coarse] = problem.layout.at_pixels(dz, problem.pixels)
@@ -206,7 +208,9 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
                 break
     if jac is None:
         jac, col = curvature_and_columns(problem, ev)
-    return OptimResult(ev.x, ev.log_scale, ev, it, converged, history, step, jac.transpose(1, 2) @ jac)
+    # the shared unknowns' last decrement as a χ² decrease (σ² from the residual: 2·loss per element)
+    shared = decrement / max(2.0 * ev.loss / max(ev.residual.numel(), 1), 1e-300) if it else 0.0
+    return OptimResult(ev.x, ev.log_scale, ev, it, converged, history, step, jac.transpose(1, 2) @ jac, shared)
 
 
 @register_method("gn")

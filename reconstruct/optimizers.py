@@ -31,7 +31,9 @@ class OptimResult:
     """``x`` ``(5, H, W)``; ``log_scale`` 0-d; ``evaluation`` at the end point; ``iterations``;
     ``converged`` (the test, not the cap, stopped it); ``history``: (CPU s, loss) after each accepted
     step; ``pixel_step`` ``(N,)``: size of the last proposed step per loss pixel (∞-norm in x), NaN
-    where the method has none; ``curvature`` ``(N, 5, 5)`` Gauss–Newton JᵀJ in x at the end (if any)."""
+    where the method has none; ``curvature`` ``(N, 5, 5)`` Gauss–Newton JᵀJ in x at the end (if any);
+    ``shared_decrement``: with maps on nodes, the χ² decrease the last step predicted from the nodes
+    (about Σ (move/σ)² over them, σ² from the residual; 0 without)."""
 
     x: torch.Tensor
     log_scale: torch.Tensor
@@ -41,6 +43,7 @@ class OptimResult:
     history: list[tuple[float, float]] = field(default_factory=list)
     pixel_step: torch.Tensor | None = None
     curvature: torch.Tensor | None = None
+    shared_decrement: float = 0.0
 
 
 #: name → callable(problem, x0, log_scale0, settings, progress) → OptimResult

@@ -90,7 +90,9 @@ def solve_split_step(
     ``(N, 5)`` each pixel's ∂loss/∂x (for a coarse map: the derivative by the map's value at the
     pixel); ``grad_scale`` ``(N,)`` each pixel's share of ∂loss/∂log s; ``lam`` ``(N,)``.
     Returns ``dx`` ``(N, 5)`` (a coarse map's column: its interpolated change at the pixel),
-    ``dz`` ``(n_nodes,)`` and ``d log s`` (0-d)."""
+    ``dz`` ``(n_nodes,)``, ``d log s`` (0-d) and the shared unknowns' decrement −bᵀδg (b the reduced
+    right side): twice the loss decrease the step predicts from the nodes and scale (after the fine
+    maps have followed), the measure of whether the shared unknowns have converged."""
     dtype = grad.dtype
     n = jac.shape[0]
     nc = len(layout.coarse)
@@ -112,7 +114,7 @@ def solve_split_step(
     dx[:, layout.fine] = dxf
     dx[:, layout.coarse] = (local[:, : 4 * nc].reshape(n, nc, 4) * wts.double().reshape(n, nc, 4)).sum(-1)
     ds = step[layout.n_nodes] if free_scale else torch.zeros((), dtype=torch.float64, device=jac.device)
-    return dx.to(dtype), step[: layout.n_nodes].to(dtype), ds.to(dtype)
+    return dx.to(dtype), step[: layout.n_nodes].to(dtype), ds.to(dtype), float(-(rhs * step).sum())
 
 
 def marginal_variance(jac: torch.Tensor, col: torch.Tensor, free_scale: bool, layout: MapLayout, pixels: torch.Tensor) -> torch.Tensor:

@@ -1,5 +1,6 @@
-"""Accuracy against time for each map's node spacing (on demand:
-``pytest -m bench tests/bench/test_bench_map_grids.py -s``).
+"""The map fit on the demo's simulated sessions (on demand:
+``pytest -m bench tests/bench/test_bench_map_grids.py -s``): accuracy against time for each map's node
+spacing, and time against the cube's size.
 
 The demo's session (``skinlayers demo`` at ``SKINLAYERS_BENCH_GRID_SIZE``, default 64: the same
 per-pixel noise as the rig's 256² cube; the acceptance scene: III interior, smooth variation,
@@ -140,3 +141,32 @@ def _chart(rows: list[dict], path: Path) -> None:
     fig.tight_layout(rect=(0, 0.16, 1, 1))
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def test_time_against_session_size():
+    """The default fit against the cube's size on the demo's sessions (64², 128², 256²; 512² with
+    ``SKINLAYERS_BENCH_512=1``): CPU seconds (one thread), iterations per level, accuracy. Writes
+    ``fit_sizes.csv``."""
+    from skinlayers.calibration.cube import read_cube
+    from skinlayers.reconstruct.fit import fit_cube
+    from skinlayers.reconstruct.settings import FitSettings
+
+    torch.set_num_threads(1)
+    sizes = [64, 128, 256] + ([512] if os.environ.get("SKINLAYERS_BENCH_512") else [])
+    rows = []
+    for size in sizes:
+        cube_path = _session(out_dir(), size)
+        cube = read_cube(cube_path)
+        fit_cube(cube, FitSettings(max_iterations=1, coarsest_px=0))  # tables built outside the timing
+        c0, w0 = time.process_time(), time.perf_counter()
+        fit = fit_cube(cube, FitSettings())
+        row = {"size": size, "cpu_s": round(time.process_time() - c0, 1), "wall_s": round(time.perf_counter() - w0, 1),
+               "levels": json.dumps([[lv["shape"][0], lv["iterations_per_pass"]] for lv in fit.levels]),
+               "forward_renders": fit.counter.forward, **_errors(fit, cube_path.parents[1] / f"session{size}", cube)}
+        rows.append(row)
+        print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+    with (out_dir() / "fit_sizes.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    assert all(r["residual_rms"] <= 1.2 * r["noise_rms"] for r in rows)

@@ -7,6 +7,8 @@ assembled column by column, for the eliminated solver.
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -87,7 +89,7 @@ def test_the_eliminated_step_is_the_dense_gauss_newton_step(free_scale):
     n, nf = pixels.numel(), len(layout.fine)
     grad = (jac.transpose(1, 2) @ residual[..., None])[..., 0]
     lam = torch.zeros(n, dtype=torch.float64)
-    dx, dz, ds = solve_split_step(jac, col, grad, (col * residual).sum(1), lam, 0.0, free_scale, layout, pixels)
+    dx, dz, ds, decrement = solve_split_step(jac, col, grad, (col * residual).sum(1), lam, 0.0, free_scale, layout, pixels)
     step = -torch.linalg.lstsq(dense, residual.reshape(-1, 1)).solution[:, 0]
     for q, k in enumerate(layout.fine):
         torch.testing.assert_close(dx[:, k], step[q * n: (q + 1) * n], rtol=1e-5, atol=1e-7)
@@ -95,6 +97,13 @@ def test_the_eliminated_step_is_the_dense_gauss_newton_step(free_scale):
     if free_scale:
         torch.testing.assert_close(ds, step[-1], rtol=1e-5, atol=1e-7)
     torch.testing.assert_close(dx[:, layout.coarse], layout.at_pixels(dz, pixels))
+    # the shared unknowns' decrement: bᵀ S⁻¹ b of the dense system reduced onto them
+    h, g = dense.T @ dense, dense.T @ residual.reshape(-1)
+    f, sh = slice(0, nf * n), slice(nf * n, None)
+    x = torch.linalg.solve(h[f, f], torch.cat([h[f, sh], g[f, None]], 1))
+    s_red = h[sh, sh] - h[sh, f] @ x[:, :-1]
+    b_red = g[sh] - h[sh, f] @ x[:, -1]
+    assert math.isclose(decrement, float(b_red @ torch.linalg.solve(s_red, b_red)), rel_tol=1e-5)
 
 
 def test_damping_shortens_the_step_and_keeps_its_descent():

@@ -140,3 +140,13 @@ def test_acceptance_on_a_128_cube(synthetic):
     rms = _residual_rms(fit, syn)
     assert rms < 0.03 and rms <= 1.2 * _noise_rms(syn)
     assert all(math.isfinite(level["rms_residual"]) for level in fit.levels)
+
+
+def test_not_converged_flags_follow_the_convergence_test(small_cube, small_fit, small_fit_settings):
+    """A fit that passed its convergence test flags no pixel as not converged; one stopped by its cap
+    after a single step flags the pixels its next step would still move by more than half their σ."""
+    assert all(level["converged"] for level in small_fit.levels)
+    assert int(((small_fit.flags >> FLAG_BITS["not_converged"]) & 1).sum()) == 0
+    capped = fit_cube(small_cube.cube, FitSettings(max_iterations=1, robust_passes=0, **small_fit_settings))
+    assert not capped.levels[-1]["converged"]
+    assert int(((capped.flags >> FLAG_BITS["not_converged"]) & 1).sum()) > 0
