@@ -49,6 +49,13 @@ def out_dir() -> Path:
     return d
 
 
+def _write_csv(name: str, rows: list[dict]) -> None:
+    with (out_dir() / name).open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
 def _session(folder: Path, size: int) -> Path:
     import yaml
 
@@ -109,10 +116,7 @@ def test_node_spacing_against_accuracy_and_time():
                "cpu_s": round(time.process_time() - c0, 1), **_errors(fit, cube_path.parents[1] / f"session{size}", cube)}
         rows.append(row)
         print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
-    with (out_dir() / "map_grids.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    _write_csv("map_grids.csv", rows)
     _chart(rows, out_dir() / "map_grids.png")
     default = next(r for r in rows if r["model"].endswith("(default)"))
     paper = rows[0]
@@ -165,8 +169,5 @@ def test_time_against_session_size():
                "forward_renders": fit.counter.forward, **_errors(fit, cube_path.parents[1] / f"session{size}", cube)}
         rows.append(row)
         print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
-    with (out_dir() / "fit_sizes.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    _write_csv("fit_sizes.csv", rows)
     assert all(r["residual_rms"] <= 1.2 * r["noise_rms"] for r in rows)
