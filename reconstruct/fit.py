@@ -170,7 +170,7 @@ def fit_cube(
             problem.pixel_weight = robust_weights(pixel_rms(problem, result.evaluation), settings.robust_scale)
             result = METHODS[settings.method](
                 problem, result.x, result.log_scale, settings,
-                lambda it, loss, i=i: say(FitEvent("fit", i, len(levels), it, loss, pixels)),
+                lambda it, loss, i=i, done=sum(passes): say(FitEvent("fit", i, len(levels), done + it, loss, pixels)),
             )
             passes.append(result.iterations)
             history += [(t - cpu0, loss, i) for t, loss in result.history[1:]]
