@@ -33,7 +33,8 @@ def fresh_folder(base: Path) -> Path:
 def demo_scene() -> dict:
     """The demo's scene: the simulator's default without hairs. Hairs are interface absorbance the fit's
     model does not hold; their halo in red light biases the maps around them (measured on the default
-    256² session with its five hairs: C_m 10.5%, β_m ±0.125, C_hd 9.0%; without them 5.5%, ±0.029, 7.0%)."""
+    256² session with its five hairs: C_m 9.3%, β_m ±0.100, C_hd 9.4%; without them 5.5%, ±0.029, 7.0%;
+    at 64² with hairs β_m ±0.165)."""
     from .acquire.scene import load_scene  # noqa: PLC0415
 
     scene = load_scene(None).model_dump(mode="json")
