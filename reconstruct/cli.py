@@ -234,6 +234,8 @@ def reconstruct(
     )
     for note in fit.checks.notes:
         console.print(f"note: {note}")
+    for name, share in fit.maps_at_bound.items():
+        console.print(f"note: {name} (on nodes) rests at a bound over {share:.0%} of the pixels (the data do not hold it there)")
     if flags:
         console.print("flagged pixels: " + ", ".join(f"{k} {v}" for k, v in flags.items()))
     for kind, path in paths.items():
