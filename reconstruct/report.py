@@ -56,7 +56,14 @@ def plot_report(fit: MapFit, measured: torch.Tensor, path: str | Path) -> Path:
         lim = float(np.percentile(np.abs(res[j][~masked]), 99)) if vis.size else 1.0
         show(axes[2, j], res[j], f"fit − measured {w:g}", "RdBu_r", -lim, lim)
     for i, n in enumerate(PARAMETER_NAMES):
-        show(axes[3, i], getattr(fit.maps, n)[0].detach().cpu().numpy(), _LABELS[n], "magma")
+        values = getattr(fit.maps, n)[0].detach().cpu().numpy()
+        vis = values[~masked] if (~masked).any() else values.ravel()
+        lo, hi = float(vis.min()), float(vis.max())
+        if hi - lo <= 1e-3 * max(abs(hi), 1e-12):  # one value for the patch (a map on one node): no round-off speckle
+            lo, hi = lo * 0.9, hi * 1.1 + 1e-12
+            show(axes[3, i], values, f"{_LABELS[n]} = {np.median(vis):.3g} (patch)", "magma", lo, hi)
+        else:
+            show(axes[3, i], values, _LABELS[n], "magma")
     show(axes[3, 5], fit.residual_rms.detach().cpu().numpy(), "residual RMS", "inferno")
     axes[3, 6].set_axis_on()
     axes[3, 6].imshow(fit.flags.cpu().numpy(), cmap="tab10", interpolation="nearest", vmin=0, vmax=2 ** len(FLAG_BITS))
