@@ -138,9 +138,12 @@ class FitSettings(BaseModel):
 
     @field_validator("map_cell_mm", mode="before")
     @classmethod
-    def _cells(cls, value):
-        """A file names only the maps it changes; the others keep the Gauss–Newton default."""
-        return {**DEFAULT_MAP_CELL_MM, **value} if isinstance(value, dict) else value
+    def _cells(cls, value, info):
+        """A file names only the maps it changes; the others keep the method's default."""
+        if not isinstance(value, dict):
+            return value
+        per_pixel = info.data.get("method") in _PER_PIXEL_METHODS
+        return {**(_PER_PIXEL if per_pixel else DEFAULT_MAP_CELL_MM), **value}
 
     @model_validator(mode="after")
     def _method(self) -> "FitSettings":

@@ -148,6 +148,10 @@ def demo(
 
     if size < 16 or size % 8:
         raise ValueError(f"--size {size}: expected a multiple of 8, at least 16 (e.g. 64, 128, 256)")
+    if scene is not None:  # a bad scene file is refused before any folder is made
+        from .acquire.scene import load_scene  # noqa: PLC0415
+
+        load_scene(scene)
     if out is not None and out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"{out}: exists and is not empty; the demo writes into a fresh folder")
     folder = out if out is not None else fresh_folder(Path(DEFAULT_FOLDER))

@@ -91,3 +91,10 @@ def test_an_occupied_folder_is_refused(tmp_path):
     result = CliRunner().invoke(app, ["demo", "--out", str(tmp_path)])
     assert result.exit_code != 0 and "fresh folder" in str(result.exception)
     assert (tmp_path / "x").read_text() == "keep me"
+
+
+def test_a_bad_scene_is_refused_before_any_folder_is_made(tmp_path):
+    out = tmp_path / "run"
+    result = CliRunner().invoke(app, ["demo", "--out", str(out), "--scene", str(tmp_path / "missing.yaml")])
+    assert result.exit_code != 0 and "missing.yaml" in str(result.exception)
+    assert not out.exists()

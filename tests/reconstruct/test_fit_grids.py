@@ -138,8 +138,9 @@ def test_settings_fill_unnamed_maps_and_refuse_what_cannot_run():
         FitSettings(map_cell_mm={"melanin": 1.0})
     with pytest.raises(ValueError, match="≥ 0"):
         FitSettings(map_cell_mm={"C_hd": -1.0})
-    with pytest.raises(ValueError, match="fits every map per pixel"):
+    with pytest.raises(ValueError, match="puts C_hd on nodes"):  # only what the user named
         FitSettings(method="adam", map_cell_mm={"C_hd": 0.5})
+    assert FitSettings(method="adam", map_cell_mm={"C_m": 0.0}).coarse_maps == []  # unnamed: the method's default
     assert FitSettings(method="adam", map_cell_mm=dict.fromkeys(PARAMETER_NAMES, 0.0)).coarse_maps == []
     assert FitSettings(method="paper-fd").cells == dict.fromkeys(PARAMETER_NAMES, 0.0)  # the paper's per-pixel fit
     assert FitSettings(method="gn").coarse_maps == []
