@@ -27,10 +27,10 @@ from ..model import PARAMETER_NAMES
 from ..model.maps import SkinMaps
 from ..model.renderer import SkinRenderer
 from .checks import DataChecks, check_cube, flag_value
-from .gauss_newton import curvature_and_columns, solve_step
+from .gauss_newton import curvature_and_columns, level_step
 from .optimizers import METHODS, OptimResult
 from .problem import LevelProblem, RenderCounter
-from .schur import marginal_variance, solve_split_step
+from .schur import marginal_variance
 from .settings import FitSettings
 from .start import STARTS
 from .unknowns import bounds, dparams_dx, extend, pyramid, to_params, upsample
@@ -161,23 +161,20 @@ def fit_cube(
         else:
             x = upsample(x, level.shape)
         c0, f0, b0 = time.process_time(), counter.forward, counter.backward
-        result = METHODS[settings.method](
-            problem, x, log_scale, settings, lambda it, loss, i=i: say(FitEvent("fit", i, len(levels), it, loss, pixels))
-        )
-        passes = [result.iterations]
-        history += [(t - cpu0, loss, i) for t, loss in result.history]
-        for _ in range(settings.robust_passes):
-            problem.pixel_weight = robust_weights(pixel_rms(problem, result.evaluation), settings.robust_scale)
+        passes: list[int] = []
+        for k in range(1 + settings.robust_passes):  # the fit, then its robust refits
+            if k:
+                problem.pixel_weight = robust_weights(pixel_rms(problem, result.evaluation), settings.robust_scale)
+                x, log_scale = result.x, result.log_scale
             result = METHODS[settings.method](
-                problem, result.x, result.log_scale, settings,
+                problem, x, log_scale, settings,
                 lambda it, loss, i=i, done=sum(passes): say(FitEvent("fit", i, len(levels), done + it, loss, pixels)),
             )
             passes.append(result.iterations)
-            history += [(t - cpu0, loss, i) for t, loss in result.history[1:]]
-        records.append(_level_record(problem, result, time.process_time() - c0, counter.forward - f0, counter.backward - b0))
-        records[-1].update(iterations=sum(passes), iterations_per_pass=passes, nodes_step_chi2=round(result.shared_decrement, 3))
+            history += [(t - cpu0, loss, i) for t, loss in result.history[1 if k else 0:]]
+        records.append(_level_record(problem, result, passes, time.process_time() - c0, counter.forward - f0, counter.backward - b0))
         x, log_scale = extend(result.x, problem.index), result.log_scale
-        say(FitEvent("level", i, len(levels), result.iterations, result.evaluation.loss, pixels))
+        say(FitEvent("level", i, len(levels), sum(passes), result.evaluation.loss, pixels))
     say(FitEvent("final", len(levels) - 1, len(levels), pixels=pixels))
     out = _finish(problem, result, x, log_scale, checks, settings, cube.mm_per_pixel)
     return MapFit(
@@ -200,12 +197,14 @@ def robust_weights(rms: torch.Tensor, scale: float) -> torch.Tensor:
     return 1.0 / (1.0 + (rms / c) ** 2)
 
 
-def _level_record(problem: LevelProblem, result: OptimResult, cpu_s: float, forward: int, backward: int) -> dict:
+def _level_record(problem: LevelProblem, result: OptimResult, passes: list[int], cpu_s: float, forward: int, backward: int) -> dict:
     return {
         "shape": list(problem.level.shape),
         "map_grids": problem.layout.describe(),
         "mm_per_pixel": problem.level.mm_per_pixel,
-        "iterations": result.iterations,
+        "iterations": sum(passes),
+        "iterations_per_pass": passes,
+        "nodes_step_chi2": round(result.shared_decrement, 3),
         "converged": result.converged,
         "rms_residual": float(pixel_rms(problem, result.evaluation).pow(2).mean().sqrt()),
         "scale": float(torch.exp(result.log_scale)),
@@ -229,10 +228,7 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     jac, col = curvature_and_columns(problem, ev)
     lam = torch.full((problem.n_pixels,), 1e-3, dtype=jac.dtype, device=jac.device)
     grad = ev.grad.T if ev.grad is not None else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
-    if problem.layout.per_pixel:
-        dx, _, _ = solve_step(jac, col, grad, (col * ev.residual).sum(), lam, 1e-3, settings.free_scale)
-    else:
-        dx, _, _, _ = solve_split_step(jac, col, grad, (col * ev.residual).sum(1), lam, 1e-3, settings.free_scale, problem.layout, problem.pixels)
+    dx = level_step(problem, jac, col, grad, ev.residual, lam, 1e-3, settings.free_scale)[0]
     # uncertainty from the unweighted problem: the robust weights shape the estimate, not the camera's noise
     problem.pixel_weight = None
     jac, col = curvature_and_columns(problem, ev)

@@ -31,10 +31,10 @@ import torch
 
 from .optimizers import OptimResult, register_method
 from .problem import Evaluation, LevelProblem
-from .schur import solve_split_step
+from .schur import block_factor, block_solve, solve_split_step
 from .unknowns import X_LIMIT
 
-__all__ = ["curvature_and_columns", "gauss_newton", "solve_step"]
+__all__ = ["curvature_and_columns", "gauss_newton", "level_step", "solve_step"]
 
 _MAX_STEP = 3.0  # largest change of any x in one step (a factor e³ in a small concentration)
 _LAMBDA0 = 1e-3
@@ -67,23 +67,12 @@ def solve_step(
     dtype = grad.dtype
     j = jac.double()
     a = j.transpose(1, 2) @ j
-    diag = torch.diagonal(a, dim1=1, dim2=2)
-    seen = diag > 1e-24 * diag.amax(dim=1, keepdim=True).clamp_min(1e-300)
-    s = torch.where(seen, torch.sqrt(diag), torch.ones_like(diag))
-    scaled = a / (s[:, :, None] * s[:, None, :])
-    scaled = torch.where(seen[:, :, None] & seen[:, None, :], scaled, torch.zeros_like(scaled))
-    eye = torch.eye(5, dtype=a.dtype, device=a.device)
-    damped = scaled + eye * (lam.double()[:, None, None] + 1e-9) + torch.diag_embed((~seen).double())
-    chol, info = torch.linalg.cholesky_ex(damped)
-    if bool(info.any()):  # numerically indefinite block: fall back to the damped diagonal
-        bad = info > 0
-        chol[bad] = eye * torch.sqrt(1.0 + lam.double()[bad, None, None])
-    mask = seen.double()
-    a_inv_g = torch.cholesky_solve((grad.double() / s * mask)[..., None], chol)[..., 0] / s * mask
+    factor = block_factor(a, lam.double())
+    a_inv_g = block_solve(factor, grad.double()[..., None])[..., 0]
     if not free_scale:
         return (-a_inv_g).to(dtype), torch.zeros((), dtype=dtype, device=grad.device), a.to(dtype)
     b = (j.transpose(1, 2) @ col.double()[..., None])[..., 0]  # (N, 5)
-    a_inv_b = torch.cholesky_solve((b / s * mask)[..., None], chol)[..., 0] / s * mask
+    a_inv_b = block_solve(factor, b[..., None])[..., 0]
     c = (col.double() ** 2).sum()
     schur = c * (1.0 + lam_scale) - (b * a_inv_b).sum()
     d_scale = -(grad_scale.double() - (b * a_inv_g).sum()) / schur.clamp_min(1e-12 * float(c) + 1e-300)
@@ -104,7 +93,7 @@ def _apply(problem: LevelProblem, x: torch.Tensor, dx: torch.Tensor, z: torch.Te
     return problem.layout.assemble(out, z), z
 
 
-def _step(problem: LevelProblem, jac, col, grad, residual, lam, lam_scale, free_scale):
+def level_step(problem: LevelProblem, jac, col, grad, residual, lam, lam_scale, free_scale):
     """(dx ``(N, 5)``, dz, d log s, shared decrement) of the damped system: per-pixel 5×5 blocks, or
     with shared nodes."""
     if problem.layout.per_pixel:
@@ -161,7 +150,7 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
         if jac is None:
             jac, col = curvature_and_columns(problem, ev)
         grad = ev.grad.T if exact else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
-        dx, dz, ds, decrement = _step(problem, jac, col, grad, ev.residual, lam, lam_scale, settings.free_scale)
+        dx, dz, ds, decrement = level_step(problem, jac, col, grad, ev.residual, lam, lam_scale, settings.free_scale)
         dx, dz = dx.clamp(-_MAX_STEP, _MAX_STEP), dz.clamp(-_MAX_STEP, _MAX_STEP)
         if not problem.layout.per_pixel:  # the coarse maps' change where the clamped nodes put it
             dx[:, problem.layout.coarse] = problem.layout.at_pixels(dz, problem.pixels)

@@ -11,8 +11,8 @@ coarse map through G = [J_c[:, k]·w_kj …, s·R] ``(L, m)`` (bilinear weights 
 and with X_p = A_p⁻¹B_p, y_p = A_p⁻¹g_f the reduced system over g is
 S = Σ_p (C_p − B_pᵀX_p) (scattered onto the nodes each pixel touches), right side Σ_p (g_g − B_pᵀy_p);
 then δf_p = −(y_p + X_p δg_p). A step costs N batched n_f×n_f solves and one dense solve of the
-nodes (a few hundred to a few thousand). Damping as in ``gauss_newton.solve_step``: Jacobi-scaled
-blocks, λ_p per pixel on the fine block, one λ on the shared block; an unknown no pixel sees stays.
+nodes (a few hundred to a few thousand). Damping (``block_factor``, shared with
+``gauss_newton.solve_step``): Jacobi-scaled blocks, λ_p per pixel on the fine block, one λ on the shared block; an unknown no pixel sees stays.
 
 The same elimination with no damping on whitened Jacobians gives the marginal covariance of every
 pixel's parameters (``marginal_variance``): Cov(g) = S⁻¹, Cov(f_p) = A_p⁻¹ + X_p Cov(g)_p X_pᵀ.
@@ -24,11 +24,16 @@ import torch
 
 from .grids import MapLayout
 
-__all__ = ["marginal_variance", "solve_split_step"]
+__all__ = ["block_factor", "block_solve", "marginal_variance", "solve_split_step"]
 
 
-def _block_factor(a: torch.Tensor, lam: torch.Tensor | float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Cholesky factor of the Jacobi-scaled, damped blocks ``a`` ``(N, n, n)``: (factor, scale s, seen)."""
+def block_factor(a: torch.Tensor, lam: torch.Tensor | float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Cholesky factor of the Jacobi-scaled, damped blocks ``a`` ``(N, n, n)``: (factor, scale s, seen).
+
+    Jacobi scaling (unit diagonal) makes a step invariant to the scale of each unknown — a parameter
+    near a bound, where the logistic map is flat, moves as freely as one in the middle — and turns
+    Marquardt's damping λ·diag(A) into λ·I. An unknown no row sees (zero column) gets an identity row
+    and does not move."""
     n = a.shape[-1]
     diag = torch.diagonal(a, dim1=-2, dim2=-1)
     seen = diag > 1e-24 * diag.amax(dim=-1, keepdim=True).clamp_min(1e-300)
@@ -45,8 +50,8 @@ def _block_factor(a: torch.Tensor, lam: torch.Tensor | float) -> tuple[torch.Ten
     return chol, s, seen
 
 
-def _block_solve(factor, rhs: torch.Tensor) -> torch.Tensor:
-    """A⁻¹ rhs for rhs ``(N, n, k)`` with ``factor`` from ``_block_factor`` (unseen unknowns: 0)."""
+def block_solve(factor, rhs: torch.Tensor) -> torch.Tensor:
+    """A⁻¹ rhs for rhs ``(N, n, k)`` with ``factor`` from ``block_factor`` (unseen unknowns: 0)."""
     chol, s, seen = factor
     mask = seen.to(rhs.dtype)[..., None]
     return torch.cholesky_solve(rhs / s[..., None] * mask, chol) / s[..., None] * mask
@@ -73,9 +78,9 @@ def _scatter(local: torch.Tensor, idx: torch.Tensor, size: int) -> torch.Tensor:
 
 
 def _reduced(jf, g, idx, size, lam_f):
-    factor = _block_factor(jf.transpose(1, 2) @ jf, lam_f)
+    factor = block_factor(jf.transpose(1, 2) @ jf, lam_f)
     b = jf.transpose(1, 2) @ g  # (N, n_f, m)
-    x = _block_solve(factor, b)
+    x = block_solve(factor, b)
     s_loc = g.transpose(1, 2) @ g - b.transpose(1, 2) @ x
     return factor, b, x, _scatter(s_loc, idx, size)
 
@@ -103,10 +108,10 @@ def solve_split_step(
     gg = (grad[:, layout.coarse].double()[..., None] * wts.double().reshape(n, nc, 4)).reshape(n, 4 * nc)
     if free_scale:
         gg = torch.cat([gg, grad_scale.double()[:, None]], 1)
-    y = _block_solve(factor, gf[..., None])[..., 0]
+    y = block_solve(factor, gf[..., None])[..., 0]
     rhs = torch.zeros(size, dtype=torch.float64, device=jac.device)
     rhs.index_add_(0, idx.reshape(-1), (gg - (b.transpose(1, 2) @ y[..., None])[..., 0]).reshape(-1))
-    chol, sc, seen = _block_factor(s[None], lam_shared)
+    chol, sc, seen = block_factor(s[None], lam_shared)
     step = -torch.cholesky_solve((rhs / sc[0] * seen[0])[None, :, None], chol)[0, :, 0] / sc[0] * seen[0]
     local = step[idx]
     dxf = -(y + (x @ local[..., None])[..., 0])
@@ -131,7 +136,7 @@ def marginal_variance(jac: torch.Tensor, col: torch.Tensor, free_scale: bool, la
     local = cov[idx[:, :, None], idx[:, None, :]]  # (N, m, m)
     var = torch.empty(n, 5, dtype=torch.float64, device=jac.device)
     eye = torch.eye(len(layout.fine), dtype=torch.float64, device=jac.device).expand(n, -1, -1)
-    a_inv = _block_solve(factor, eye.clone())
+    a_inv = block_solve(factor, eye.clone())
     var[:, layout.fine] = torch.diagonal(a_inv + x @ local @ x.transpose(1, 2), dim1=1, dim2=2)
     w = wts.double().reshape(n, nc, 4)
     for q, k in enumerate(layout.coarse):
