@@ -3,14 +3,16 @@
 Real devices: ``FW102C`` (Thorlabs filter wheel over a serial port), ``GPhotoCamera`` (gphoto2).
 Simulated: ``VirtualFW102C`` (the wheel's protocol on a pseudo-terminal), ``SimulatedWheel``,
 ``SimulatedCamera`` photographing a ``SimulatedBench`` (a synthetic ``SkinScene`` rendered with the
-model). The session (``run_session``) knows only the ``FilterWheel`` and ``Camera`` protocols.
+model). ``open_devices(rig, simulated=…)`` opens the instruments a rig names; the session
+(``run_session``) knows only the ``FilterWheel`` and ``Camera`` base classes. What a session writes
+(the manifest, the rig it records) is defined in ``formats/``.
 """
 
+from .connect import Devices, open_devices
 from .devices import Camera, CameraError, DeviceError, ExposureSettings, FilterWheel, WheelError
 from .dng import write_dng
 from .fw102c import FW102C
 from .gphoto import RAW_SUFFIXES, GPhotoCamera, detect_cameras, format_shutter_s, parse_aperture_f, parse_shutter_s
-from .manifest import FrameRecord, Manifest, ManifestError, read_manifest, write_manifest
 from .rig import RigConfig, RigError, load_rig
 from .scene import SceneConfig, SceneError, SkinScene, load_scene
 from .session import AutoOperator, SessionError, SessionSummary, plan_session, run_session
@@ -20,10 +22,9 @@ from .simulation_settings import SimulationError, SimulationSettings, load_simul
 from .virtual_fw102c import WHEEL_FAULTS, VirtualFW102C
 
 __all__ = [
-    "FW102C", "RAW_SUFFIXES", "WHEEL_FAULTS", "AutoOperator", "Camera", "CameraError", "DeviceError", "ExposureSettings",
-    "FilterWheel", "FrameRecord", "GPhotoCamera", "Manifest", "ManifestError", "RigConfig", "RigError", "SceneConfig",
-    "SceneError", "SessionError", "SessionSummary", "SimulatedBench", "SimulatedCamera", "SimulatedFrame",
-    "SimulatedWheel", "SimulationError", "SimulationSettings", "SkinScene", "VirtualFW102C", "WheelError",
-    "detect_cameras", "format_shutter_s", "load_rig", "load_scene", "load_simulation_settings", "parse_aperture_f",
-    "parse_shutter_s", "plan_session", "read_manifest", "run_session", "write_dng", "write_manifest",
+    "FW102C", "RAW_SUFFIXES", "WHEEL_FAULTS", "AutoOperator", "Camera", "CameraError", "DeviceError", "Devices", "ExposureSettings",
+    "FilterWheel", "GPhotoCamera", "RigConfig", "RigError", "SceneConfig", "SceneError", "SessionError", "SessionSummary",
+    "SimulatedBench", "SimulatedCamera", "SimulatedFrame", "SimulatedWheel", "SimulationError", "SimulationSettings", "SkinScene",
+    "VirtualFW102C", "WheelError", "detect_cameras", "format_shutter_s", "load_rig", "load_scene", "load_simulation_settings",
+    "open_devices", "parse_aperture_f", "parse_shutter_s", "plan_session", "run_session", "write_dng",
 ]

@@ -50,10 +50,3 @@ def expose(mean_electrons: torch.Tensor, sensor: SimSensor, iso: int, generator:
     dn = torch.round(dn).clamp(0, sensor.white_level)
     return dn.to(torch.int32).cpu().numpy().astype(np.uint16)
 
-
-def accepted(value: float, allowed: list) -> float | None:
-    """The allowed setting ``value`` names (within 1%), or None: a camera ignores what it cannot set."""
-    for a in allowed:
-        if abs(value - a) <= 0.01 * a:
-            return a
-    return None

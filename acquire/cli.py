@@ -4,37 +4,31 @@ from __future__ import annotations
 
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
 import typer
 
-__all__ = ["register"]
+from ..formats.errors import InputError
+from ..formats.version import software_version
 
-
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version  # noqa: PLC0415
-
-    try:
-        return version("skinlayers")
-    except PackageNotFoundError:
-        return "0+unknown"
+__all__ = ["capture_progress", "register"]
 
 
 class _PromptingOperator:
-    """Asks the person at the rig (``--yes`` answers for them); tells the simulated bench, if any."""
+    """Asks the person at the rig (``--yes`` answers for them); places the target on a simulated bench."""
 
-    def __init__(self, assume_yes: bool, bench=None) -> None:
-        self.assume_yes, self.bench = assume_yes, bench
+    def __init__(self, assume_yes: bool, devices) -> None:
+        self.assume_yes, self.devices = assume_yes, devices
 
     def place(self, target: str, instruction: str) -> None:
-        if self.bench is not None:
-            self.bench.set_target(target)
+        self.devices.place(target)
         if self.assume_yes:
             typer.echo(f"operator: {instruction} (--yes)", err=True)
             return
         if not sys.stdin.isatty():
-            raise ValueError(f"the session needs the operator to act ({instruction}); "
+            raise InputError(f"the session needs the operator to act ({instruction}); "
                              "run it at a terminal, or pass --yes to answer prompts automatically")
         if not typer.confirm(f"{instruction} Ready?", default=True):
             raise KeyboardInterrupt
@@ -65,85 +59,67 @@ def capture(
       skinlayers capture --sim-camera --wheel-port /dev/pts/5 --out bench_test
       skinlayers capture --sim --out session1 --resume
     """
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415
-
-    from .manifest import read_manifest  # noqa: PLC0415
-    from .rig import load_rig  # noqa: PLC0415
+    from .connect import open_devices  # noqa: PLC0415
     from .session import run_session  # noqa: PLC0415
 
-    modes = sum([sim, sim_camera])
-    if modes > 1:
-        raise ValueError("choose one of --sim and --sim-camera")
-    if sim_camera and not (wheel_port or rig_file):
-        raise ValueError("--sim-camera needs the wheel's serial port: --wheel-port PORT (or a --rig that names it)")
-    if not resume and out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ValueError(f"{out}: exists and is not empty; a session is never overwritten "
-                         "(choose a new folder, or --resume to continue the session in it)")
-    if resume and not (out / "manifest.json").exists():
-        raise ValueError(f"{out}: no session to resume (no manifest.json)")
-    if resume and rig_file is None:
-        rig = read_manifest(out).rig_config()
-        simulated = read_manifest(out).simulated
-        sim = sim or (simulated and not sim_camera)
-    else:
-        overrides = {}
-        if sim or sim_camera:
-            overrides["camera"] = {"driver": "simulated"}
-        if wheel_port:
-            overrides["wheel"] = {"port": wheel_port}
-        rig = load_rig(rig_file, **overrides)
-    bench = wheel = camera = None
-    notes: dict = {}
+    rig, sim = _session_rig(out, sim, sim_camera, rig_file, wheel_port, resume)
+    start = time.perf_counter()
     try:
-        if sim or sim_camera or rig.camera.driver == "simulated":
-            from .scene import load_scene  # noqa: PLC0415
-            from .simdevices import SimulatedCamera, SimulatedWheel  # noqa: PLC0415
-            from .simulated import SimulatedBench  # noqa: PLC0415
-            from .simulation_settings import load_simulation_settings  # noqa: PLC0415
-
-            dev = None if device == "auto" else device
-            bench = SimulatedBench(rig, load_scene(scene), load_simulation_settings(sim_settings), seed, device=dev)
-            rig = bench.rig_as_used()
-            notes = {"seed": seed, "scene": str(scene or "configs/scene.yaml (embedded)"),
-                     "simulation": str(sim_settings or "configs/simulation.yaml (embedded)")}
-        if sim:
-            wheel = SimulatedWheel(rig.wheel.position_count, time_scale=wheel_speed)
-        else:
-            from .fw102c import FW102C  # noqa: PLC0415
-
-            port = wheel_port or rig.wheel.port
-            if not port:
-                raise ValueError("no filter wheel port: set wheel.port in the rig file or pass --wheel-port")
-            wheel = FW102C.open(port, rig.wheel)
-        if bench is not None:
-            camera = SimulatedCamera(bench, wheel)
-        else:
-            from .gphoto import GPhotoCamera  # noqa: PLC0415
-
-            camera = GPhotoCamera(rig.camera)
-        typer.echo(f"wheel:  {wheel.identify()}", err=True)
-        typer.echo(f"camera: {camera.identify()}", err=True)
-        start = time.perf_counter()
-        with Progress(TextColumn("{task.description:<22}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                      transient=False) as bar:
-            task = bar.add_task("capture", total=1)
-
-            def progress(done: int, total: int, label: str) -> None:
-                bar.update(task, completed=done, total=total, description=label)
-
-            summary = run_session(out, rig, wheel, camera, _PromptingOperator(yes, bench), resume=resume, subject=subject,
-                                  site=site, operator_name=operator, simulated=bench is not None, notes=notes,
-                                  software_version=_version(), progress=progress)
-        if bench is not None and not (out / "truth" / "reflectance.exr").exists():
-            typer.echo("writing the simulation's truth …", err=True)
-            bench.write_truth(out)
+        with open_devices(rig, simulated=sim, scene=scene, simulation=sim_settings, seed=seed, wheel_time_scale=wheel_speed,
+                          wheel_port=wheel_port, device=None if device == "auto" else device) as devices:
+            typer.echo(f"wheel:  {devices.wheel.identify()}", err=True)
+            typer.echo(f"camera: {devices.camera.identify()}", err=True)
+            with capture_progress() as progress:
+                summary = run_session(out, devices.rig, devices.wheel, devices.camera, _PromptingOperator(yes, devices), resume=resume,
+                                      subject=subject, site=site, operator_name=operator, simulated=devices.simulated,
+                                      notes=devices.notes, software_version=software_version(), progress=progress)
+            if devices.bench is not None and not (out / "truth" / "reflectance.exr").exists():
+                typer.echo("writing the simulation's truth …", err=True)
+                devices.bench.write_truth(out)
     except KeyboardInterrupt:
         typer.echo(f"interrupted: the session in {out} is consistent; continue it with --resume", err=True)
         raise typer.Exit(130) from None
-    finally:
-        for device_ in (camera, wheel):
-            if device_ is not None:
-                device_.close()
+    _print_summary(out, devices, summary, time.perf_counter() - start)
+
+
+def _session_rig(out: Path, sim: bool, sim_camera: bool, rig_file: Optional[Path], wheel_port: Optional[str], resume: bool):
+    """The rig to capture with (a resumed session's own, else the file's with the options applied) and
+    whether everything is simulated; refuses options that do not go together."""
+    from ..formats.manifest import read_manifest  # noqa: PLC0415
+    from .rig import load_rig  # noqa: PLC0415
+
+    if sim and sim_camera:
+        raise InputError("choose one of --sim and --sim-camera")
+    if sim_camera and not (wheel_port or rig_file):
+        raise InputError("--sim-camera needs the wheel's serial port: --wheel-port PORT (or a --rig that names it)")
+    if not resume and out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"{out}: exists and is not empty; a session is never overwritten "
+                         "(choose a new folder, or --resume to continue the session in it)")
+    if resume and not (out / "manifest.json").exists():
+        raise InputError(f"{out}: no session to resume (no manifest.json)")
+    if resume and rig_file is None:
+        manifest = read_manifest(out)
+        return manifest.rig_config(), sim or (manifest.simulated and not sim_camera)
+    overrides: dict = {}
+    if sim or sim_camera:
+        overrides["camera"] = {"driver": "simulated"}
+    if wheel_port:
+        overrides["wheel"] = {"port": wheel_port}
+    return load_rig(rig_file, **overrides), sim
+
+
+@contextmanager
+def capture_progress():
+    """A progress bar over the session's frames; yields the ``progress(done, total, label)`` callback."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415
+
+    with Progress(TextColumn("{task.description:<22}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), transient=False) as bar:
+        task = bar.add_task("capture", total=1)
+        yield lambda done, total, label: bar.update(task, completed=done, total=total, description=label)
+
+
+def _print_summary(out: Path, devices, summary, seconds: float) -> None:
+    rig = devices.rig
     bands = ", ".join(f"{b:g}" for b in summary.bands_nm)
     exposures = sorted({(b.iso, b.shutter_s, b.aperture_f) for b in rig.bands})
     typer.echo(f"session: {out}")
@@ -151,8 +127,8 @@ def capture(
                f"(1 black, {len(rig.bands)} references, {len(rig.bands)} skin)")
     typer.echo(f"bands:   {bands} nm")
     typer.echo("exposure: " + "; ".join(f"ISO {i}, {s:g} s, f/{a:g}" for i, s, a in exposures))
-    typer.echo(f"time:    {time.perf_counter() - start:.1f} s")
-    if bench is not None:
+    typer.echo(f"time:    {seconds:.1f} s")
+    if devices.bench is not None:
         typer.echo(f"truth:   {out / 'truth'}")
     typer.echo(f"next:    skinlayers calibrate {out}")
 
@@ -174,9 +150,9 @@ def example_maps(
     from .scene import SkinScene, load_scene  # noqa: PLC0415
 
     if not 8 <= size <= 4096:
-        raise ValueError("--size must be 8–4096 pixels")
+        raise InputError("--size must be 8–4096 pixels")
     if not 0 < mm_per_pixel < 10:
-        raise ValueError("--mm-per-pixel must be a pixel size in mm (0–10)")
+        raise InputError("--mm-per-pixel must be a pixel size in mm (0–10)")
     wavelengths = torch.arange(400.0, 701.0, 25.0, dtype=torch.float64)  # veins and hairs, interpolated between
     maps = SkinScene(load_scene(scene), seed).maps(mm_per_pixel, size, wavelengths)
     write_maps(out, maps, attributes={"software": "skinlayers example-maps", "seed": str(seed)})

@@ -28,6 +28,9 @@ What is not documented, and how the driver stays safe regardless:
 * The line ending of the error line (the transcript shows an empty line after it): CR and LF are both
   taken as line ends and empty lines are ignored.
 
+The rules every wheel keeps (6 or 12 positions, the check of a requested position, the read-back after
+a move, closing) are ``FilterWheel``'s; this module adds the wheel's protocol, its waiting and retrying.
+
 Every exchange starts by discarding unread input; bytes that arrive before the echo of the command
 (a late prompt of an earlier exchange that timed out) are skipped. A silent, late or garbled exchange is
 retried up to ``retries`` times; an error string is not (the wheel heard the command and refused it),
@@ -42,7 +45,7 @@ import re
 import time
 from typing import Callable, Optional, Protocol, TypeVar
 
-from .devices import WheelError
+from .devices import FilterWheel, WheelError
 from .rig import WheelConfig
 
 __all__ = ["FW102C", "SerialLike"]
@@ -60,7 +63,6 @@ _PORT_ERRORS = (OSError, _TermiosError)
 _PROMPT = ord(">")
 _LINE_ENDS = b"\r\n"
 _ERROR_MARKERS = ("Command error", "CMD_NOT_DEFINED", "CMD_ARG_INVALID")
-_POSITION_COUNTS = (6, 12)
 
 
 class SerialLike(Protocol):
@@ -105,8 +107,8 @@ def _answer_lines(command: bytes, received: bytes) -> Optional[list[str]]:
     return [line.decode("ascii", "replace").strip() for line in lines if line.strip()]
 
 
-class FW102C:
-    """A Thorlabs FW102C/FW212C filter wheel on a serial-like ``transport`` (implements ``FilterWheel``).
+class FW102C(FilterWheel):
+    """A Thorlabs FW102C/FW212C filter wheel on a serial-like ``transport``.
 
     ``timeout_s`` bounds the wait for one answer, ``move_timeout_s`` the wait for a move to end (prompt
     and read-back); ``retries`` is the number of extra attempts of a failed exchange or a move that
@@ -132,6 +134,7 @@ class FW102C:
         self.move_timeout_s = float(move_timeout_s)
         self.retries = int(retries)
         self.port_name = port_name or str(getattr(transport, "port", None) or "serial transport")
+        self.name = f"filter wheel on {self.port_name}"
         # Reads return after this slice at the latest, so deadlines are checked this often; set once
         # because pyserial reconfigures the port on every change of its timeout.
         self._slice_s = min(0.05, self.timeout_s)
@@ -139,7 +142,6 @@ class FW102C:
         transport.timeout = self._slice_s
         self.last_exchange: tuple[bytes, bytes] = (b"", b"")
         self._count: Optional[int] = None
-        self._closed = False
 
     @classmethod
     def open(cls, port: str, config: Optional[WheelConfig] = None) -> "FW102C":
@@ -184,17 +186,7 @@ class FW102C:
             raise
         return wheel
 
-    # --- FilterWheel protocol -------------------------------------------------------------------
-
-    @property
-    def position_count(self) -> int:
-        """Number of positions, 6 or 12 (``pcount?``, asked once)."""
-        if self._count is None:
-            count = self._transact("pcount?", _single_int)
-            if count not in _POSITION_COUNTS:
-                raise self._error(f"it reports {count} positions, expected 6 or 12")
-            self._count = count
-        return self._count
+    # --- FilterWheel ---------------------------------------------------------------------------
 
     def identify(self) -> str:
         """The wheel's ``*idn?`` line, e.g. ``THORLABS FW102C/FW212C Filter Wheel version 1.07``."""
@@ -212,37 +204,33 @@ class FW102C:
 
         return self._transact("pos?", in_range)
 
-    def move_to(self, position: int) -> None:
-        """Move to ``position`` and return once ``pos?`` reports it there; ``WheelError`` otherwise."""
-        count = self.position_count
-        if isinstance(position, bool) or not isinstance(position, int) or not 1 <= position <= count:
-            raise ValueError(f"filter wheel on {self.port_name}: position {position!r} is not in 1…{count}")
-        reported = None
-        for _ in range(self.retries + 1):
-            deadline = time.monotonic() + self.move_timeout_s
-            self._transact(f"pos={position}", _no_answer, prompt_timeout_s=self.move_timeout_s)
-            while True:
-                reported = self.position()
-                if reported == position:
-                    return
-                if time.monotonic() >= deadline:
-                    break
-                time.sleep(self._poll_s)
-        raise self._error(
-            f"asked for position {position}, it reports {reported} after {self.retries + 1} "
-            f"attempt(s) of {self.move_timeout_s:g} s"
-        )
+    def _position_count(self) -> int:
+        """``pcount?``, asked once."""
+        if self._count is None:
+            self._count = self._transact("pcount?", _single_int)
+        return self._count
 
-    def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            self._transport.close()
+    def _move(self, position: int) -> int:
+        """``pos=n``, repeated up to ``retries`` times while the wheel ends elsewhere; the position
+        reported last."""
+        for _ in range(self.retries):
+            if self._move_once(position) == position:
+                return position
+        return self._move_once(position)
 
-    def __enter__(self) -> "FW102C":
-        return self
+    def _move_once(self, position: int) -> int:
+        """``pos=n``, then ``pos?`` until the wheel reports ``position`` or ``move_timeout_s`` has passed
+        (a firmware may show the prompt when the move starts); the position reported last."""
+        deadline = time.monotonic() + self.move_timeout_s
+        self._transact(f"pos={position}", _no_answer, prompt_timeout_s=self.move_timeout_s)
+        while True:
+            reported = self.position()
+            if reported == position or time.monotonic() >= deadline:
+                return reported
+            time.sleep(self._poll_s)
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def _close(self) -> None:
+        self._transport.close()
 
     # --- further settings of the FW102C ---------------------------------------------------------
 
@@ -269,7 +257,7 @@ class FW102C:
         self, command: str, parse: Callable[[list[str]], T], *, prompt_timeout_s: Optional[float] = None
     ) -> T:
         """Send ``command``, parse its answer lines; retry a silent, late or garbled exchange."""
-        if self._closed:
+        if self.closed:
             raise self._error(f"cannot send {command!r}: the port is closed")
         problem = ""
         for _ in range(self.retries + 1):
@@ -318,9 +306,7 @@ class FW102C:
 
     def _error(self, what: str) -> WheelError:
         sent, received = self.last_exchange
-        return WheelError(
-            f"filter wheel on {self.port_name}: {what}; last exchange: sent {sent!r}, received {received!r}"
-        )
+        return WheelError(f"{self.name}: {what}; last exchange: sent {sent!r}, received {received!r}")
 
 
 def _no_answer(lines: list[str]) -> None:

@@ -23,12 +23,13 @@ main.c, libgphoto2 camlibs/ptp2/config.c) and man page:
   overwriting, so the driver captures into a fresh folder next to the destination (stdin closed) and
   moves the raw file into place in one rename.
 
-Every call has a time-out; failures raise ``CameraError`` naming the command and gphoto2's message.
+A menu entry counts as the value asked for, and so does the value read back, by ``Camera``'s rule
+(within ``readback_tolerance_stops``, 1/6 stop, of exposure). Every call has a time-out; failures raise
+``CameraError`` naming the command and gphoto2's message.
 """
 
 from __future__ import annotations
 
-import math
 import os
 import re
 import shlex
@@ -39,7 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from .devices import CameraError, ExposureSettings
+from .devices import Camera, CameraError, format_shutter_s, show_setting
 from .rig import CameraConfig
 
 __all__ = ["GPhotoCamera", "RAW_SUFFIXES", "detect_cameras", "format_shutter_s", "parse_aperture_f", "parse_shutter_s"]
@@ -51,9 +52,6 @@ _CONFIG_NAMES = {
     "shutter": ("shutterspeed", "shutterspeed2", "eos-shutterspeed"),
     "aperture": ("aperture", "f-number", "eos-aperture"),
 }
-# Nominal camera values differ from exact ones (1/3 s is shown as 0.3, f/5.6 is 2^2.5 = 5.66): a value
-# counts as the one asked for within 1/6 stop of exposure (log2 of ISO or time; 2 log2 of f-number).
-_STOP_TOLERANCE = 1 / 6
 
 
 def parse_shutter_s(text: str) -> Optional[float]:
@@ -72,17 +70,6 @@ def parse_shutter_s(text: str) -> Optional[float]:
     return None
 
 
-def format_shutter_s(seconds: float) -> str:
-    """The camera's way of writing a shutter time: 0.01 → ``1/100``, 0.3 → ``0.3``, 2 → ``2``."""
-    if not seconds > 0:
-        raise ValueError(f"shutter time must be > 0 s, got {seconds}")
-    if seconds < 1:
-        inverse = 1 / seconds
-        if abs(inverse - round(inverse)) < 1e-6 * inverse:
-            return f"1/{round(inverse)}"
-    return f"{seconds:g}"
-
-
 def parse_aperture_f(text: str) -> Optional[float]:
     """f-number of a camera value: ``f/10``, ``F10``, ``10``, ``5.6`` → float; None otherwise."""
     t = re.sub(r"^[fF]/?", "", text.strip())
@@ -97,11 +84,6 @@ def _parse_iso(text: str) -> Optional[float]:
 
 
 _PARSERS = {"iso": _parse_iso, "shutter": parse_shutter_s, "aperture": parse_aperture_f}
-_STOPS_PER_LOG2 = {"iso": 1.0, "shutter": 1.0, "aperture": 2.0}
-
-
-def _stops_apart(setting: str, a: float, b: float) -> float:
-    return abs(math.log2(a / b)) * _STOPS_PER_LOG2[setting]
 
 
 @dataclass(frozen=True)
@@ -148,11 +130,12 @@ def detect_cameras(executable: str = "gphoto2", timeout_s: float = 20.0) -> list
     return [(m, p) for m, p in found if not (p == "usb:" and m in specific)]
 
 
-class GPhotoCamera:
-    """A camera reached through the ``gphoto2`` command (implements ``Camera``).
+class GPhotoCamera(Camera):
+    """A camera reached through the ``gphoto2`` command.
 
     ``timeout_s`` bounds every call but the capture, which ``capture_timeout_s`` bounds (exposure,
-    flash recharge and download of a raw file). ``executable`` is the gphoto2 program to run.
+    flash recharge and download of a raw file). ``executable`` is the gphoto2 program to run. Closing
+    releases nothing: every gphoto2 call opens and closes the camera itself.
     """
 
     def __init__(
@@ -170,6 +153,7 @@ class GPhotoCamera:
         self.timeout_s = float(timeout_s)
         self.capture_timeout_s = float(capture_timeout_s)
         self.model, self.port = self._choose(config, detect_cameras(executable, self.timeout_s))
+        self.name = f"camera {self.model}"
         self._names: Optional[dict[str, str]] = None
 
     @staticmethod
@@ -198,7 +182,7 @@ class GPhotoCamera:
             )
         return candidates[0]
 
-    # --- Camera protocol ------------------------------------------------------------------------
+    # --- Camera ---------------------------------------------------------------------------------
 
     def identify(self) -> str:
         """``model at port``, with the serial number where the camera reports one."""
@@ -206,14 +190,6 @@ class GPhotoCamera:
         if "serialnumber" in self._config_paths():
             serial = self._get("serialnumber").current
         return f"{self.model} at {self.port}" + (f", serial {serial}" if serial else "")
-
-    def configure(self, exposure: ExposureSettings) -> ExposureSettings:
-        """Set ISO, shutter and aperture, read each back; the values the camera reports."""
-        found = {}
-        for setting, asked in (("iso", float(exposure.iso)), ("shutter", exposure.shutter_s),
-                               ("aperture", exposure.aperture_f)):
-            found[setting] = self._set_and_check(setting, asked)
-        return ExposureSettings(iso=round(found["iso"]), shutter_s=found["shutter"], aperture_f=found["aperture"])
 
     def capture(self, destination: Path) -> Path:
         """Expose one frame, download its raw file and move it to ``destination`` with the camera's
@@ -239,44 +215,32 @@ class GPhotoCamera:
         finally:
             shutil.rmtree(work, ignore_errors=True)
 
-    def close(self) -> None:
-        """Nothing to release: every gphoto2 call opens and closes the camera itself."""
-
-    def __enter__(self) -> "GPhotoCamera":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     # --- settings -------------------------------------------------------------------------------
 
-    def _set_and_check(self, setting: str, asked: float) -> float:
+    def _set(self, setting: str, value: float) -> tuple[Optional[float], str]:
+        """Set the menu entry that counts as ``value`` (or, without a menu, its text) unless it is
+        current; the value ``--get-config`` reports then."""
         name = self._config_name(setting)
         parse = _PARSERS[setting]
         widget = self._get(name)
         if widget.choices:
-            offered = [(c, parse(c)) for c in widget.choices]
-            offered = [(c, v) for c, v in offered if v is not None]
-            best = min(offered, key=lambda cv: _stops_apart(setting, cv[1], asked), default=None)
-            if best is None or _stops_apart(setting, best[1], asked) > _STOP_TOLERANCE:
+            offered = [(c, v) for c in widget.choices if (v := parse(c)) is not None]
+            best = self._nearest(setting, value, [v for _, v in offered])
+            if best is None:
                 raise CameraError(
-                    f"camera {self.model}: {setting} {_show(setting, asked)} is not among its values for "
+                    f"{self.name}: {setting} {show_setting(setting, value)} is not among its values for "
                     f"{name!r} ({', '.join(widget.choices)})"
                 )
-            value = best[0]
+            text = offered[best][0]
         else:
-            value = format_shutter_s(asked) if setting == "shutter" else f"{asked:g}"
-        if widget.current != value:
-            self._call(["--set-config-value", f"{name}={value}"], self.timeout_s)
+            text = format_shutter_s(value) if setting == "shutter" else f"{value:g}"
+        if widget.current != text:
+            self._call(["--set-config-value", f"{name}={text}"], self.timeout_s)
         current = self._get(name).current
-        got = parse(current)
-        if got is None or _stops_apart(setting, got, asked) > _STOP_TOLERANCE:
-            raise CameraError(
-                f"camera {self.model}: {setting} asked {_show(setting, asked)}, the camera reports {current!r} "
-                f"after setting {name}={value} (a value it does not accept in its current mode is ignored; "
-                f"set the mode dial to M)"
-            )
-        return got
+        return parse(current), (
+            f"{current!r} after setting {name}={text} (a value it does not accept in its current mode is "
+            f"ignored; set the mode dial to M)"
+        )
 
     def _config_paths(self) -> dict[str, str]:
         """Leaf name → full path of every configuration entry (``--list-config``, read once)."""
@@ -314,11 +278,3 @@ class GPhotoCamera:
 
     def _call(self, args: list[str], timeout_s: float, cwd: Optional[Path] = None) -> str:
         return _run_gphoto2(self.executable, ["--camera", self.model, "--port", self.port, *args], timeout_s, cwd)
-
-
-def _show(setting: str, value: float) -> str:
-    if setting == "shutter":
-        return f"{format_shutter_s(value)} s"
-    if setting == "aperture":
-        return f"f/{value:g}"
-    return f"ISO {value:g}"

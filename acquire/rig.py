@@ -1,154 +1,28 @@
-"""The rig configuration: bands and their filters and exposures, the wheel, the camera, the targets.
+"""The rig configuration from YAML: ``load_rig`` (the embedded ``configs/rig.yaml`` by default).
 
-One typed, validated description of the capture rig (PHYSICS.md §7; DWRR08 §6), read from YAML
-(``configs/rig.yaml`` is the embedded default) and saved, as used, into every session's manifest.
-The capture session, the simulated bench and the calibration all read it from here.
+The rig's typed description is a contract between acquisition and calibration and lives in
+``formats/rig.py``; it is re-exported here, where a capture reads it.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-
-from ..model.settings import format_validation_error, read_yaml_mapping
+from ..formats.rig import (
+    BandConfig,
+    CameraConfig,
+    GeometryConfig,
+    PolarizationConfig,
+    RigConfig,
+    RigError,
+    TargetsConfig,
+    WheelConfig,
+    rig_from_dict,
+)
+from ..formats.settings import load_settings
 
 __all__ = ["BandConfig", "CameraConfig", "GeometryConfig", "PolarizationConfig", "RigConfig", "RigError",
-           "TargetsConfig", "WheelConfig", "load_rig"]
-
-
-class RigError(ValueError):
-    """A rig file or value that cannot be used; the message names the file, the key and the problem."""
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
-
-
-class BandConfig(_Strict):
-    """One acquisition band: its filter and the exposure it is taken with."""
-
-    wavelength_nm: float = Field(..., ge=380, le=800, description="Centre wavelength of the band-pass filter (nm).")
-    fwhm_nm: float = Field(10.0, gt=0, le=100, description="Full width at half maximum of the filter (nm).")
-    filter_position: int = Field(..., ge=1, description="Wheel position holding this filter (1-based, as the FW102C counts).")
-    iso: int = Field(400, gt=0, description="ISO of the frames in this band (DWRR08: 200–800 by wavelength).")
-    shutter_s: float = Field(0.01, gt=0, description="Shutter time (s); the flash is far shorter (DWRR08: 1/100 s).")
-    aperture_f: float = Field(10.0, gt=0, description="Aperture f-number (DWRR08: f/10).")
-
-
-class WheelConfig(_Strict):
-    """The filter wheel (Thorlabs FW102C / FW212C)."""
-
-    port: Optional[str] = Field(None, description="Serial port of the wheel, e.g. /dev/ttyUSB0 or COM3.")
-    baud: int = Field(115200, gt=0, description="Baud rate (FW102C default 115200, 8N1).")
-    timeout_s: float = Field(2.0, gt=0, description="Time to wait for one answer of the wheel (s).")
-    move_timeout_s: float = Field(10.0, gt=0, description="Time to wait for a move to finish (s).")
-    retries: int = Field(2, ge=0, le=10, description="Retries of an exchange that failed before giving up.")
-    position_count: int = Field(12, description="Positions of the wheel (6 or 12).")
-    dark_position: int = Field(1, ge=1, description="Position of the opaque slot used for the black frame.")
-
-
-class CameraConfig(_Strict):
-    """The camera and how to reach it."""
-
-    driver: Literal["gphoto2", "simulated"] = Field("gphoto2", description="gphoto2 (a real camera) or simulated.")
-    model: Optional[str] = Field(None, description="Camera model to pick when several are connected (gphoto2 --camera).")
-    port: Optional[str] = Field(None, description="gphoto2 port, e.g. usb:001,004 (auto-detected when omitted).")
-    angle_deg: float = Field(30.0, ge=0, lt=80, description="Camera axis off the flash axis (DWRR08 §6: 30°).")
-
-
-class TargetsConfig(_Strict):
-    """Reference targets in the scene."""
-
-    spectralon_reflectance: float | dict[float, float] = Field(
-        0.99, description="Certified reflectance of the Spectralon target: one value, or per band {nm: value}."
-    )
-    gray_card_reflectance: float = Field(0.30, gt=0, lt=1, description="Reflectance of the gray card in every frame.")
-
-    def spectralon_at(self, wavelength_nm: float) -> float:
-        """The certified reflectance at a band (linear between tabulated bands, ends held)."""
-        r = self.spectralon_reflectance
-        if isinstance(r, (int, float)):
-            return float(r)
-        pts = sorted((float(k), float(v)) for k, v in r.items())
-        if wavelength_nm <= pts[0][0]:
-            return pts[0][1]
-        for (w0, v0), (w1, v1) in zip(pts, pts[1:]):
-            if wavelength_nm <= w1:
-                return v0 + (v1 - v0) * (wavelength_nm - w0) / (w1 - w0)
-        return pts[-1][1]
-
-
-class PolarizationConfig(_Strict):
-    """Biases of the crossed polarizers (DWRR08 §6.1), as factors on the signal each target gives
-    relative to an ideal depolarizing reflector of the same reflectance."""
-
-    spectralon_factor: float = Field(
-        1.0527, gt=0, description="Spectralon's signal under the crossed polarizers over its certified reflectance (±5.27% s/p)."
-    )
-    skin_factor: float = Field(1.0, gt=0, description="Skin's (imperfect) depolarization factor; its spread is left to the fit's scale.")
-
-
-class GeometryConfig(_Strict):
-    """The patch: the black tape's window."""
-
-    window_mm: float = Field(7.5, gt=0, description="Side of the square window in the black tape (DWRR08: 7.5 mm).")
-    cube_px: int = Field(256, ge=16, description="Side of the calibrated reflectance cube (DWRR08: 512 → 256).")
-    rectify_px: int = Field(512, ge=16, description="Side the window is resampled to before the box filter.")
-    gray_card_roi_px: Optional[list[int]] = Field(
-        None,
-        min_length=4,
-        max_length=4,
-        description=(
-            "Region of the 30% gray card in raw sensor pixels, [x0, y0, x1, y1] half-open. The card is fixed "
-            "to the rig, not to the subject, so it stays at one image place; the simulator writes it."
-        ),
-    )
-
-    @model_validator(mode="after")
-    def _roi(self) -> "GeometryConfig":
-        r = self.gray_card_roi_px
-        if r is not None and not (0 <= r[0] < r[2] and 0 <= r[1] < r[3]):
-            raise ValueError(f"gray_card_roi_px must be [x0, y0, x1, y1] with 0 <= x0 < x1 and 0 <= y0 < y1, got {r}")
-        return self
-
-
-class RigConfig(_Strict):
-    """Everything about the rig a session and its calibration need."""
-
-    name: str = Field("DWRR08-style rig", description="A name for this rig.")
-    bands: list[BandConfig] = Field(..., min_length=1, description="The acquisition bands, in capture order.")
-    wheel: WheelConfig = WheelConfig()
-    camera: CameraConfig = CameraConfig()
-    targets: TargetsConfig = TargetsConfig()
-    polarization: PolarizationConfig = PolarizationConfig()
-    geometry: GeometryConfig = GeometryConfig()
-
-    @model_validator(mode="after")
-    def _consistent(self) -> "RigConfig":
-        positions = [b.filter_position for b in self.bands]
-        if len(set(positions)) != len(positions):
-            raise ValueError("bands: two bands share a filter position")
-        if self.wheel.dark_position in positions:
-            raise ValueError(f"wheel.dark_position {self.wheel.dark_position} also holds a band filter")
-        top = max(positions + [self.wheel.dark_position])
-        if top > self.wheel.position_count:
-            raise ValueError(f"filter position {top} exceeds wheel.position_count {self.wheel.position_count}")
-        waves = [b.wavelength_nm for b in self.bands]
-        if len(set(waves)) != len(waves):
-            raise ValueError("bands: two bands share a wavelength")
-        return self
-
-    @property
-    def wavelengths_nm(self) -> list[float]:
-        return [b.wavelength_nm for b in self.bands]
-
-    def band(self, wavelength_nm: float) -> BandConfig:
-        for b in self.bands:
-            if abs(b.wavelength_nm - wavelength_nm) < 1e-6:
-                return b
-        raise KeyError(f"no band at {wavelength_nm:g} nm in rig {self.name!r}")
+           "TargetsConfig", "WheelConfig", "default_rig_path", "load_rig", "rig_from_dict"]
 
 
 def default_rig_path() -> Path:
@@ -158,23 +32,7 @@ def default_rig_path() -> Path:
 
 
 def load_rig(path: str | Path | None = None, **overrides) -> RigConfig:
-    """The rig of a YAML file (the embedded ``configs/rig.yaml`` when ``path`` is None).
-
-    ``overrides`` replace top-level sections (e.g. ``camera={"driver": "simulated"}``). Raises
-    ``RigError`` naming the file, the key and the problem.
-    """
-    path = Path(path) if path is not None else default_rig_path()
-    data = read_yaml_mapping(path, RigError)
-    for key, value in overrides.items():
-        if isinstance(value, dict) and isinstance(data.get(key), dict):
-            data[key] = {**data[key], **value}
-        else:
-            data[key] = value
-    return rig_from_dict(data, str(path))
-
-
-def rig_from_dict(data: dict, source: str = "rig") -> RigConfig:
-    try:
-        return RigConfig.model_validate(data)
-    except ValidationError as exc:
-        raise RigError(f"{source}: {format_validation_error(exc)}") from None
+    """The rig of a YAML file (the embedded ``configs/rig.yaml`` when ``path`` is None), with
+    ``overrides`` merged in (e.g. ``camera={"driver": "simulated"}``). Raises ``RigError`` naming the
+    file, the key and the problem."""
+    return load_settings(RigConfig, path, RigError, "rig", overrides, default_path=default_rig_path())

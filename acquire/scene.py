@@ -20,22 +20,20 @@ from typing import Annotated, Optional
 
 import numpy as np
 import torch
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, Field, model_validator
 
 from ..model.maps import SkinMaps
 from ..model.params import PARAMETER_BOUNDS, PARAMETER_NAMES, TABLE2
-from ..model.settings import SkinOptics, format_validation_error, read_yaml_mapping
+from ..formats.errors import SettingsError
+from ..formats.settings import Strict, load_settings, validate_settings
+from ..model.settings import SkinOptics
 from ..model.spectra import chromophore_spectra
 
 __all__ = ["SceneConfig", "SceneError", "SkinScene", "load_scene", "scene_from_dict"]
 
 
-class SceneError(ValueError):
+class SceneError(SettingsError):
     """A scene file or value that cannot be used; the message names the file, the key and the problem."""
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
 
 
 def _ordered(value: tuple[float, float]) -> tuple[float, float]:
@@ -48,7 +46,7 @@ def _ordered(value: tuple[float, float]) -> tuple[float, float]:
 Range = Annotated[tuple[float, float], AfterValidator(_ordered)]
 
 
-class BaseSkin(_Strict):
+class BaseSkin(Strict):
     """The skin the features vary around."""
 
     preset: Optional[str] = Field("III interior", description="A DWRR08 Table 2 row; values given below override it.")
@@ -72,7 +70,7 @@ class BaseSkin(_Strict):
         return out
 
 
-class VariationConfig(_Strict):
+class VariationConfig(Strict):
     """Smooth variation: each chromophore times exp(a·f), f a unit-variance random field."""
 
     length_scale_mm: float = Field(1.5, gt=0, description="Typical wavelength of the variation (mm).")
@@ -85,14 +83,14 @@ class VariationConfig(_Strict):
     blood_correlation: float = Field(0.87, ge=-1, le=1, description="Correlation of the C_he and C_hd fields (DWRR08 §7: 0.87).")
 
 
-class FrecklesConfig(_Strict):
+class FrecklesConfig(Strict):
     count: int = Field(10, ge=0, le=10000)
     radius_mm: Range = (0.12, 0.35)
     melanin_factor: Range = (2.0, 4.0)
     edge_mm: float = Field(0.03, gt=0)
 
 
-class ScarConfig(_Strict):
+class ScarConfig(Strict):
     count: int = Field(1, ge=0, le=100)
     length_mm: Range = (3.0, 5.0)
     width_mm: Range = (0.4, 0.8)
@@ -103,7 +101,7 @@ class ScarConfig(_Strict):
     dermal_blood_factor: float = Field(1.5, ge=0)
 
 
-class VeinsConfig(_Strict):
+class VeinsConfig(Strict):
     count: int = Field(1, ge=0, le=100)
     radius_mm: Range = (0.25, 0.4)
     meander_mm: Range = (0.2, 0.6)
@@ -111,7 +109,7 @@ class VeinsConfig(_Strict):
     blood_path_mm: float = Field(0.01, ge=0, description="Deoxygenated-blood path at the vessel's centre line (mm).")
 
 
-class HairsConfig(_Strict):
+class HairsConfig(Strict):
     count: int = Field(5, ge=0, le=10000)
     length_mm: Range = (2.0, 5.0)
     width_mm: Range = (0.04, 0.08)
@@ -119,7 +117,7 @@ class HairsConfig(_Strict):
     absorbance: float = Field(3.0, ge=0, description="Interface absorbance on a hair's centre line (all wavelengths).")
 
 
-class SceneConfig(_Strict):
+class SceneConfig(Strict):
     """A synthetic skin patch (``configs/scene.yaml`` is the embedded default)."""
 
     extent_mm: float = Field(8.5, gt=0, description="Side of the square, centred on the window, where features lie.")
@@ -139,16 +137,11 @@ def default_scene_path() -> Path:
 
 def load_scene(path: str | Path | None = None) -> SceneConfig:
     """The scene of a YAML file (the embedded ``configs/scene.yaml`` when ``path`` is None)."""
-    path = Path(path) if path is not None else default_scene_path()
-    data = read_yaml_mapping(path, SceneError)
-    return scene_from_dict(data, str(path))
+    return load_settings(SceneConfig, path, SceneError, "scene", default_path=default_scene_path())
 
 
 def scene_from_dict(data: dict, source: str = "scene") -> SceneConfig:
-    try:
-        return SceneConfig.model_validate(data)
-    except ValidationError as exc:
-        raise SceneError(f"{source}: {format_validation_error(exc)}") from None
+    return validate_settings(SceneConfig, data, SceneError, source)
 
 
 # -- the drawn scene ---------------------------------------------------------------------------------

@@ -1,5 +1,5 @@
 """The capture session: a black frame, a Spectralon reference per band, then the skin at every band
-(PHYSICS.md §7; DWRR08 §6), driven through the ``FilterWheel`` and ``Camera`` protocols.
+(DWRR08 §6.1–6.2), driven through the ``FilterWheel`` and ``Camera`` protocols.
 
 Nothing is lost on a fault and nothing is overwritten:
 
@@ -23,7 +23,9 @@ from pathlib import Path
 from typing import Callable, Optional, Protocol
 
 from .devices import Camera, ExposureSettings, FilterWheel
-from .manifest import FrameRecord, Manifest, ManifestError, file_sha256, now_iso, read_manifest, write_manifest
+from ..formats.errors import InputError
+from ..formats.files import file_sha256, now_iso
+from ..formats.manifest import FrameRecord, Manifest, ManifestError, read_manifest, write_manifest
 from .rig import RigConfig
 
 __all__ = ["AutoOperator", "Operator", "PlannedFrame", "SessionError", "SessionSummary", "plan_session", "run_session"]
@@ -38,7 +40,7 @@ INSTRUCTIONS = {
 Progress = Callable[[int, int, str], None]
 
 
-class SessionError(ValueError):
+class SessionError(InputError):
     """A session that cannot start or continue; the message names the folder and the problem."""
 
 

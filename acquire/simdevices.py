@@ -1,19 +1,20 @@
 """Simulated instruments: an in-process filter wheel and a camera that photographs a ``SimulatedBench``.
 
-They implement the ``FilterWheel`` and ``Camera`` protocols, so a session runs on them unchanged. The
-camera asks the wheel object it was given for its position at every exposure — that wheel may be the
-``SimulatedWheel`` or a real FW102C driver talking to the serial twin — so a wheel at the wrong
-position shows in the picture, as it would at the bench. Faults can be injected into both.
+They derive from ``FilterWheel`` and ``Camera`` and so keep the real drivers' rules (position check,
+read-back, closing, use with ``with``); a session runs on them unchanged. The camera asks the wheel
+object it was given for its position at every exposure — that wheel may be the ``SimulatedWheel`` or
+a real FW102C driver talking to the serial twin — so a wheel at the wrong position shows in the
+picture, as it would at the bench. Faults can be injected into both.
 """
 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Iterable, Mapping
+from typing import TYPE_CHECKING, Callable, Iterable, Mapping, Optional
 
-from ._sensor import accepted
-from .devices import CameraError, ExposureSettings, FilterWheel, WheelError
+from .devices import EXPOSURE_FIELDS, Camera, CameraError, ExposureSettings, FilterWheel, show_setting
 from .dng import write_dng
 
 if TYPE_CHECKING:
@@ -22,7 +23,7 @@ if TYPE_CHECKING:
 __all__ = ["SimulatedCamera", "SimulatedWheel"]
 
 
-class SimulatedWheel:
+class SimulatedWheel(FilterWheel):
     """A motorised filter wheel in the process (positions 1 … ``position_count``).
 
     A move takes ``settle_s + seconds_per_step ×`` the positions crossed (the shorter way round),
@@ -30,16 +31,18 @@ class SimulatedWheel:
     assumptions of this simulator, not a datasheet's figures; set them from your wheel.
 
     Faults, counted by move (the first ``move_to`` is move 1): ``wrong_position={n: p}`` — move n
-    stops at p (the wheel reports p, and ``move_to`` raises ``WheelError`` as a driver that reads
-    the position back does); ``no_answer={n}`` — move n does not happen and raises ``WheelError``.
+    stops at p (the wheel reports p, and ``move_to``'s read-back raises ``WheelError``);
+    ``no_answer={n}`` — move n does not happen and raises ``WheelError``.
     """
+
+    name = "simulated wheel"
 
     def __init__(
         self, position_count: int = 12, *, position: int = 1, seconds_per_step: float = 0.4, settle_s: float = 0.1,
         time_scale: float = 1.0, wrong_position: Mapping[int, int] | None = None, no_answer: Iterable[int] = (),
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
-        if position_count not in (6, 12):
+        if position_count not in self.POSITION_COUNTS:
             raise ValueError(f"a filter wheel has 6 or 12 positions, not {position_count}")
         if not 1 <= position <= position_count:
             raise ValueError(f"start position {position} outside 1–{position_count}")
@@ -53,38 +56,29 @@ class SimulatedWheel:
         self._sleep = sleep
         self.moves = 0
 
-    @property
-    def position_count(self) -> int:
-        return self._count
-
     def identify(self) -> str:
         return f"skinlayers simulated filter wheel ({self._count} positions)"
 
     def position(self) -> int:
         return self._position
 
-    def move_to(self, position: int) -> None:
-        if not 1 <= position <= self._count:
-            raise WheelError(f"simulated wheel: position {position} outside 1–{self._count}")
+    def _position_count(self) -> int:
+        return self._count
+
+    def _move(self, position: int) -> int:
         self.moves += 1
         if self.moves in self._silent:
-            raise WheelError(f"simulated wheel: no answer to the move to position {position} (injected fault, move {self.moves})")
+            raise self._error(f"no answer to the move to position {position} (injected fault, move {self.moves})")
         target = self._wrong.get(self.moves, position)
         d = abs(target - self._position)
         steps = min(d, self._count - d)
         if self._scale > 0 and steps:
             self._sleep(self._scale * (self._settle_s + self._step_s * steps))
         self._position = target
-        if target != position:
-            raise WheelError(
-                f"simulated wheel: asked for position {position}, stopped at {target} (injected fault, move {self.moves})"
-            )
-
-    def close(self) -> None:
-        """Nothing to release."""
+        return target
 
 
-class SimulatedCamera:
+class SimulatedCamera(Camera):
     """A camera with flash photographing ``bench`` through ``wheel``; writes uncompressed DNG files.
 
     Settings outside the sensor's lists (``sensor.iso_values``, ``shutter_values_s``,
@@ -92,6 +86,12 @@ class SimulatedCamera:
     ``CameraError``. ``fail_captures={n}``: capture n (1-based) delivers no frame (``CameraError``).
     A frame's file is written atomically and replaces a file of the same name.
     """
+
+    name = "simulated camera"
+    # It reports exactly the listed value it took, so it needs no room for nominal values: 1/32 stop
+    # still takes a value within 1% of a listed one (1% of an f-number is 0.029 stop) and refuses one
+    # between two of its third stops, so that a setting it ignores shows in the read-back.
+    readback_tolerance_stops = 1 / 32
 
     def __init__(self, bench: "SimulatedBench", wheel: FilterWheel, *, fail_captures: Iterable[int] = ()) -> None:
         self.bench = bench
@@ -103,24 +103,6 @@ class SimulatedCamera:
     def identify(self) -> str:
         g, s = self.bench.geometry, self.bench.settings.sensor
         return f"skinlayers simulated camera ({g.width_px}×{g.height_px} px, {s.bit_depth}-bit RGGB, seed {self.bench.seed})"
-
-    def configure(self, exposure: ExposureSettings) -> ExposureSettings:
-        s = self.bench.settings.sensor
-        current = self._exposure
-        iso = accepted(exposure.iso, s.iso_values)
-        shutter = accepted(exposure.shutter_s, s.shutter_values_s)
-        aperture = accepted(exposure.aperture_f, s.aperture_values)
-        self._exposure = ExposureSettings(
-            int(iso) if iso is not None else current.iso,
-            shutter if shutter is not None else current.shutter_s,
-            aperture if aperture is not None else current.aperture_f,
-        )
-        got = self._exposure
-        for name, asked, found in (("iso", exposure.iso, got.iso), ("shutter_s", exposure.shutter_s, got.shutter_s),
-                                   ("aperture_f", exposure.aperture_f, got.aperture_f)):
-            if abs(asked - found) > 0.01 * asked:
-                raise CameraError(f"simulated camera: {name} {asked:g} was not accepted; the camera reports {found:g}")
-        return got
 
     def capture(self, destination: Path) -> Path:
         self.captures += 1
@@ -134,5 +116,15 @@ class SimulatedCamera:
             iso=e.iso, exposure_s=e.shutter_s, f_number=e.aperture_f, model="simulated camera",
         )
 
-    def close(self) -> None:
-        """Nothing to release."""
+    def _set(self, setting: str, value: float) -> tuple[Optional[float], str]:
+        """Take the listed value that counts as ``value``; keep the current one if there is none."""
+        allowed = getattr(self.bench.settings.sensor, _ALLOWED[setting])
+        field = EXPOSURE_FIELDS[setting]
+        best = self._nearest(setting, value, allowed)
+        if best is not None:
+            self._exposure = replace(self._exposure, **{field: allowed[best]})
+        found = getattr(self._exposure, field)
+        return found, show_setting(setting, found)
+
+
+_ALLOWED = {"iso": "iso_values", "shutter": "shutter_values_s", "aperture": "aperture_values"}

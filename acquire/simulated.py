@@ -1,5 +1,5 @@
 """The simulated bench: a skin scene, the black tape with its window, a Spectralon target and a gray
-card, photographed through the filter wheel by a 30° camera with a xenon flash (PHYSICS.md §7).
+card, photographed through the filter wheel by a 30° camera with a xenon flash (DWRR08 §6.1–6.2).
 
 ``SimulatedBench`` holds the scene, the rig, the simulation settings and the seed. It renders each
 band's skin once with the model at higher fidelity than any fit (finer grid, several wavelengths
@@ -32,14 +32,15 @@ import torch
 
 from ..model.illumination import Light
 from ..model.maps import SkinMaps
-from ..model.maps_io import write_maps, write_spectral
+from ..formats.exr import write_spectral
+from ..formats.files import atomic_write
+from ..model.maps_io import write_maps
 from ..model.renderer import SkinRenderer
 from ..model.settings import ModelSettings
 from ._optics import (BandSpectrum, CameraGeometry, band_spectrum, bilinear, gaussian_blur, sample_points, sensor_geometry,
                       to_subject, vignetting)
 from ._sensor import e_per_dn, expose, mosaic
 from .devices import ExposureSettings
-from .manifest import atomic_write
 from .rig import BandConfig, RigConfig, load_rig, rig_from_dict
 from .scene import SceneConfig, SkinScene, load_scene
 from .simulation_settings import SimulationError, SimulationSettings, load_simulation_settings

@@ -10,22 +10,19 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 
-from ..model.settings import format_validation_error, read_yaml_mapping
+from ..formats.errors import SettingsError
+from ..formats.settings import Strict, load_settings, validate_settings
 
 __all__ = ["ChannelCurve", "SimulationError", "SimulationSettings", "load_simulation_settings", "simulation_from_dict"]
 
 
-class SimulationError(ValueError):
+class SimulationError(SettingsError):
     """Simulation settings that cannot be used; the message names the file or key and the problem."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
-
-
-class SimCamera(_Strict):
+class SimCamera(Strict):
     distance_mm: float = Field(270.0, gt=10, description="Centre of projection to the window centre (mm).")
     window_span_px: Optional[int] = Field(None, ge=16, description="Raw px across the window's centre line; None: 2 × rectify_px.")
     field_of_view_mm: tuple[float, float] = Field((12.0, 10.0), description="Skin-plane width × height the sensor covers (mm).")
@@ -34,7 +31,7 @@ class SimCamera(_Strict):
     supersample: int = Field(2, ge=1, le=8, description="Samples per raw pixel per axis in the warp.")
 
 
-class SimScene(_Strict):
+class SimScene(Strict):
     tape_reflectance: float = Field(0.03, ge=0, le=1, description="Reflectance of the black tape (flat).")
     gray_card_mm: tuple[float, float, float, float] = Field(
         (-5.8, -1.5, -4.3, 1.5), description="Gray card, fixed to the rig: [x0, y0, x1, y1] in skin-plane mm."
@@ -48,21 +45,21 @@ class SimScene(_Strict):
         return self
 
 
-class SimFlash(_Strict):
+class SimFlash(Strict):
     temperature_k: float = Field(6000.0, ge=1000, le=20000, description="Blackbody temperature of the xenon continuum (K).")
     jitter: float = Field(0.05, ge=0, lt=1, description="Flash energy uniform within ± this fraction.")
 
 
-class SimMotion(_Strict):
+class SimMotion(Strict):
     max_shift_px: float = Field(10.0, ge=0, description="Largest subject shift between frames (raw px at the window centre).")
     max_rotation_deg: float = Field(0.2, ge=0, le=10, description="Largest subject rotation about the window centre.")
 
 
-class SimFilters(_Strict):
+class SimFilters(Strict):
     wavelength_samples: int = Field(3, ge=1, le=15, description="Gauss–Hermite nodes across each band-pass.")
 
 
-class ChannelCurve(_Strict):
+class ChannelCurve(Strict):
     """One Bayer channel's relative spectral sensitivity: an asymmetric Gaussian main lobe plus a
     Gaussian side lobe (fitted to measured camera curves; see ``SimSensor.sensitivity``)."""
 
@@ -86,7 +83,7 @@ def _nikon_d5100() -> dict[str, ChannelCurve]:
     }
 
 
-class SimSensor(_Strict):
+class SimSensor(Strict):
     bit_depth: Literal[12, 16] = Field(16, description="Bits per sample in the DNG (pidng's 14-bit path is broken).")
     white_level: int = Field(16383, gt=0, description="Largest DN the converter gives (saturation).")
     black_level: tuple[int, int, int, int] = Field(
@@ -140,18 +137,18 @@ class SimSensor(_Strict):
         return self
 
 
-class SimTruth(_Strict):
+class SimTruth(Strict):
     oversample: int = Field(2, ge=2, le=8, description="Truth grid = cube grid / oversample (at least 2× finer).")
     margin_mm: float = Field(0.5, ge=0.05, description="Skin mapped beyond the window on every side (mm).")
     border_mm: float = Field(3.0, ge=0, description="Renderer border beyond the maps for the window light (mm).")
     blur: Literal["fft", "pyramid", "chain"] = Field(
-        "pyramid", description="Renderer blur strategy for the truth (pyramid: within 7e-4 of fft's peak, 20–35× faster)."
+        "pyramid", description="Renderer blur strategy for the truth (pyramid: its agreement with fft, docs/renderer.md)."
     )
     identity_below_px: float = Field(0.0, ge=0, description="Gaussians narrower than this act as the identity.")
     series_tolerance: float = Field(1e-3, gt=0, lt=1, description="Light left in the inter-scattering series.")
 
 
-class SimulationSettings(_Strict):
+class SimulationSettings(Strict):
     """How the simulated bench turns the rig and a scene into raw frames."""
 
     camera: SimCamera = SimCamera()
@@ -171,13 +168,8 @@ def default_simulation_path() -> Path:
 
 def load_simulation_settings(path: str | Path | None = None) -> SimulationSettings:
     """Settings of a YAML file (the embedded ``configs/simulation.yaml`` when ``path`` is None)."""
-    path = Path(path) if path is not None else default_simulation_path()
-    data = read_yaml_mapping(path, SimulationError)
-    return simulation_from_dict(data, str(path))
+    return load_settings(SimulationSettings, path, SimulationError, "simulation settings", default_path=default_simulation_path())
 
 
 def simulation_from_dict(data: dict, source: str = "simulation settings") -> SimulationSettings:
-    try:
-        return SimulationSettings.model_validate(data)
-    except ValidationError as exc:
-        raise SimulationError(f"{source}: {format_validation_error(exc)}") from None
+    return validate_settings(SimulationSettings, data, SimulationError, source)

@@ -4,11 +4,11 @@ window detection and band alignment).
 ``calibrate_session(session_dir, out_dir=None, settings=None, progress=None, *, overwrite=False)`` runs
 the whole chain; the modules hold one step each: ``raw`` (decoding, superpixels), ``window`` (detection,
 rectification), ``align`` (bands to each other), ``corrections`` (the radiometric factors), ``checks``
-(what refuses and what is flagged), ``report`` (contact sheet), ``cube`` (the output format).
+(what refuses and what is flagged), ``report`` (contact sheet). The cube it writes is defined in
+``formats/cube.py``.
 """
 
 from .checks import Flag
-from .cube import Cube, CubeError, read_cube, write_cube
 from .errors import (
     BandMissingError,
     CalibrationError,
@@ -26,8 +26,6 @@ __all__ = [
     "CalibrationResult",
     "CalibrationSettings",
     "ChecksumMismatchError",
-    "Cube",
-    "CubeError",
     "Flag",
     "FrameMissingError",
     "RawDecodeError",
@@ -36,6 +34,4 @@ __all__ = [
     "calibrate_session",
     "default_out_dir",
     "load_calibration_settings",
-    "read_cube",
-    "write_cube",
 ]

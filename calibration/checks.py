@@ -4,7 +4,7 @@
 
 | problem | exception |
 |---|---|
-| no or invalid manifest | ``acquire.manifest.ManifestError`` |
+| no or invalid manifest | ``formats.manifest.ManifestError`` |
 | a file the manifest names is missing | ``FrameMissingError`` (an ``OSError``) |
 | a file name leaving the session folder (in the manifest, or a link) | ``ManifestError``, ``CalibrationError`` |
 | a frame's SHA-256 differs from the manifest | ``ChecksumMismatchError`` |
@@ -43,8 +43,9 @@ from typing import Iterable, Optional, Sequence
 
 import numpy as np
 
-from ..acquire.manifest import FrameRecord, Manifest, file_sha256, safe_member
-from ..acquire.rig import RigConfig
+from ..formats.files import file_sha256, safe_member
+from ..formats.manifest import FrameRecord, Manifest
+from ..formats.rig import RigConfig
 from .errors import BandMissingError, CalibrationError, ChecksumMismatchError, FrameMissingError
 from .settings import CalibrationSettings
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
@@ -11,7 +12,7 @@ import typer
 from .pipeline import calibrate_session, default_out_dir
 from .settings import SettingsFileError, load_calibration_settings
 
-__all__ = ["register"]
+__all__ = ["calibration_progress", "print_summary", "register"]
 
 
 def _parse_roi(text: str) -> list[int]:
@@ -51,6 +52,18 @@ def calibrate(
         overrides["gray_card_roi_px"] = _parse_roi(gray_card_roi)
     settings = load_calibration_settings(config, **overrides)
 
+    with calibration_progress() as progress:
+        result = calibrate_session(session, out if out is not None else default_out_dir(session), settings, progress, overwrite=force)
+    report = result.report
+    if as_json:
+        typer.echo(json.dumps({k: v for k, v in report.items() if k != "settings"}))
+        return
+    print_summary(report, result)
+
+
+@contextmanager
+def calibration_progress():
+    """A progress bar over the calibration's steps; yields the ``calibrate_session`` progress callback."""
     from rich.console import Console  # noqa: PLC0415
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn  # noqa: PLC0415
 
@@ -59,19 +72,11 @@ def calibrate(
         TextColumn("{task.description}"), TimeElapsedColumn(), console=Console(stderr=True), transient=True,
     ) as bar:
         task = bar.add_task("reading the manifest", total=None)
-
-        def progress(done: int, total: int, message: str) -> None:
-            bar.update(task, completed=done, total=total, description=message)
-
-        result = calibrate_session(session, out if out is not None else default_out_dir(session), settings, progress, overwrite=force)
-    report = result.report
-    if as_json:
-        typer.echo(json.dumps({k: v for k, v in report.items() if k != "settings"}))
-        return
-    _print_summary(report, result)
+        yield lambda done, total, message: bar.update(task, completed=done, total=total, description=message)
 
 
-def _print_summary(report: dict, result) -> None:
+def print_summary(report: dict, result) -> None:
+    """The calibration as a table of bands, its flags and its times."""
     from rich.console import Console  # noqa: PLC0415
     from rich.table import Table  # noqa: PLC0415
 

@@ -1,4 +1,4 @@
-"""The radiometric corrections, one pure function each (PHYSICS.md §7; DWRR08 §6).
+"""The radiometric corrections, one pure function each (DWRR08 §6.1, §6.2, §6.4).
 
 For a band, with superpixel frames above black (``raw.py``):
 
@@ -25,8 +25,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..acquire.manifest import Exposure
-from ..acquire.rig import RigConfig
+from ..formats.manifest import Exposure
+from ..formats.rig import RigConfig
 from .errors import CalibrationError
 from .settings import CalibrationSettings
 

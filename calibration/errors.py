@@ -7,6 +7,8 @@ exceptions; problems that leave part of the cube usable are *flags* (``checks.Fl
 
 from __future__ import annotations
 
+from ..formats.errors import InputError, SkinlayersError
+
 __all__ = [
     "BandMissingError",
     "CalibrationError",
@@ -17,7 +19,7 @@ __all__ = [
 ]
 
 
-class CalibrationError(ValueError):
+class CalibrationError(InputError):
     """A session, frame or setting calibration cannot use; the message names it and the problem."""
 
 
@@ -37,5 +39,5 @@ class WindowNotFoundError(CalibrationError):
     """No window, or more than one candidate, in a skin frame."""
 
 
-class FrameMissingError(FileNotFoundError):
+class FrameMissingError(SkinlayersError, FileNotFoundError):
     """A file the manifest names is not in the session folder."""

@@ -1,6 +1,6 @@
 """``calibrate_session``: a session folder → ``cube.exr``, ``calibration.json`` and a contact sheet.
 
-The chain (PHYSICS.md §7): read and check the manifest and every frame's checksum; decode the black
+The chain (DWRR08 §6.1–6.2, §6.4; the box filter of §7.2), one named step each: read and check the manifest and every frame's checksum; decode the black
 frame and, band by band, the Spectralon reference and the skin frame into 2×2 superpixels; subtract
 the black frame; divide the skin by the reference at the same camera pixels (the flat field); find the
 window in that ratio — the reflectance, flat across the frame, so the tape/skin contrast is the same
@@ -14,8 +14,9 @@ session folder. Every error names the frame at fault: its file and what it is (`
 Output (default folder: ``<session>_calibrated`` beside the session, so the session stays exactly as
 captured — checksums, resumable capture, read-only archives):
 
-- ``cube.exr``: ``R_<nm>`` per band and ``mask`` (``calibration/cube.py``); meta: window corners per
-  band (raw px), camera angle, session, settings, alignment shifts;
+- ``cube.exr``: ``R_<nm>`` per band and ``mask`` (``formats/cube.py``); its header holds each band's
+  filter width and the camera angle from the rig, the pixel size and the provenance, and a record of the
+  window corners per band (raw px), alignment shifts and settings;
 - ``calibration.json``: per band exposure, factors (flash, exposure, Spectralon, polarization),
   gray-card levels, window, alignment shift, SNR estimate, saturated and under-exposed fractions; flags;
   time per stage; the settings;
@@ -36,14 +37,17 @@ import cv2
 import numpy as np
 import torch
 
-from ..acquire.manifest import atomic_write, now_iso, read_manifest
+from ..formats.cube import CUBE_NAME, Cube, CubeHeader, Provenance, calibrated_dir, write_cube
+from ..formats.files import atomic_write, now_iso
+from ..formats.manifest import read_manifest
+from ..formats.rig import RigConfig
+from ..formats.version import software_version
 from .align import align_bands, apply_alignment
-from .checks import Flag, alignment_flags, check_reference, exposure_flags, gray_card_flags, select_frames, verify_files
+from .checks import BandFrames, Flag, alignment_flags, check_reference, exposure_flags, gray_card_flags, select_frames, verify_files
 from .corrections import band_factors, gray_card_level, reflectance_ratio, roi_to_superpixels, subtract_dark
-from .cube import Cube, _version, write_cube
 from .errors import CalibrationError
 from .raw import RawImage, cell_centroid, cell_weights, read_raw
-from .report import thumbnail, write_contact_sheet
+from .report import Thumbnail, thumbnail, write_contact_sheet
 from .settings import CalibrationSettings
 from .window import box_filter, find_window, rectify, superpixel_to_raw_xy
 
@@ -52,7 +56,9 @@ __all__ = ["CalibrationResult", "ProgressFn", "calibrate_session", "default_out_
 ProgressFn = Callable[[int, int, str], None]
 """``progress(done, total, message)``, called after each step."""
 
-CUBE_NAME, REPORT_NAME, SHEET_NAME = "cube.exr", "calibration.json", "contact_sheet.png"
+REPORT_NAME, SHEET_NAME = "calibration.json", "contact_sheet.png"
+#: A rectified pixel counts as valid in the cube when this share of it came from valid superpixels.
+_VALID_SHARE = 0.999
 
 
 @dataclass
@@ -70,10 +76,45 @@ class CalibrationResult:
     timings_s: dict[str, float] = field(default_factory=dict)
 
 
+@dataclass
+class _Inputs:
+    """The verified session: its rig, the frames to use and their files, the output folder."""
+
+    session: Path
+    rig: RigConfig
+    out: Path
+    dark_file: Optional[str]
+    bands: list[BandFrames]
+    paths: dict[str, Path]
+    roi: Optional[list[int]]
+    reference_index: int
+
+
+@dataclass
+class _Band:
+    """One band calibrated: rectified reflectance and validity ``(rectify_px, rectify_px)``, its flags,
+    its thumbnail and its entry in ``calibration.json``."""
+
+    rectified: np.ndarray
+    valid: np.ndarray
+    flags: list[Flag]
+    thumb: Thumbnail
+    entry: dict
+
+
+@dataclass
+class _Alignment:
+    """Each band's measured shift (cube px), ECC correlation and whether the shift was applied."""
+
+    shifts: np.ndarray
+    correlation: np.ndarray
+    applied: np.ndarray
+    flags: list[Flag]
+
+
 def default_out_dir(session: str | Path) -> Path:
     """``<session>_calibrated`` beside the session folder."""
-    session = Path(session).resolve()
-    return session.parent / f"{session.name}_calibrated"
+    return calibrated_dir(session)
 
 
 def calibrate_session(
@@ -91,196 +132,245 @@ def calibrate_session(
     or OSError subclasses, one line each); problems that leave the cube usable become flags.
     """
     settings = settings or CalibrationSettings()
-    session = Path(session_dir).resolve()
     timings: dict[str, float] = {}
     clock = _stage_clock(timings)
     with clock("verify"):
-        manifest = read_manifest(session)
-        rig = manifest.rig_config()
-        geo = rig.geometry
-        if geo.rectify_px % geo.cube_px:
-            raise CalibrationError(f"rig geometry: rectify_px {geo.rectify_px} is not a multiple of cube_px {geo.cube_px}")
-        out = _output_dir(session, out_dir, overwrite)
-        dark_record, bands = select_frames(manifest, rig, settings.dark_frame)
-        paths = verify_files(session, manifest.frames)
-        roi = settings.gray_card_roi_px or geo.gray_card_roi_px
-        if settings.gray_card and roi is None:
-            raise CalibrationError(
-                f"{session}: the rig in the manifest has no geometry.gray_card_roi_px; give the card's region "
-                "(calibration setting gray_card_roi_px, or --gray-card-roi x0,y0,x1,y1) or switch the gray card off (--no-gray-card)"
-            )
-    total = len(bands) + 3
-    done = 1
-    _report(progress, done, total, "frames verified")
-    wavelengths = [b.wavelength_nm for b in bands]
-    ref_index = _reference_band(wavelengths, settings.align_reference_nm)
+        inputs = _verify(Path(session_dir).resolve(), out_dir, overwrite, settings)
+    total = len(inputs.bands) + 3
+    _report(progress, 1, total, "frames verified")
     with clock("decode"):
-        dark = _decode(paths[dark_record.file], "black frame", settings) if settings.dark_frame else None
+        dark = _decode(inputs.paths[inputs.dark_file], "black frame", settings) if inputs.dark_file is not None else None
     dark_sp = dark.superpixel() if dark is not None else None
-
-    flags: list[Flag] = []
-    per_band, rectified, valid_maps, thumbs = [], [], [], []
-    for bf in bands:
-        w = bf.wavelength_nm
-        with clock("decode"):
-            ref = _decode(paths[bf.reference.file], f"reference frame, {w:g} nm", settings)
-            skin = _decode(paths[bf.skin.file], f"skin frame, {w:g} nm", settings)
-        skin_name, ref_name = f"{skin.path} (skin frame, {w:g} nm)", f"{ref.path} (reference frame, {w:g} nm)"
-        for frame, name in ((ref, ref_name), (skin, skin_name)):
-            if dark is not None and frame.shape != dark.shape:
-                raise CalibrationError(
-                    f"{name}: {frame.shape[1]}×{frame.shape[0]} px, the black frame {dark.shape[1]}×{dark.shape[0]}"
-                )
-        if ref.shape != skin.shape:
-            raise CalibrationError(f"{skin_name}: {skin.shape[1]}×{skin.shape[0]} px, its reference {ref.shape[1]}×{ref.shape[0]}")
-        with clock("corrections"):
-            s_img = subtract_dark(skin.superpixel(), dark_sp)
-            f_img = subtract_dark(ref.superpixel(), dark_sp)
-            flat = ref.values if dark is None else ref.values - dark.values
-            weights, centroid = cell_weights(flat), cell_centroid(flat)
-            sat_skin, sat_ref = skin.superpixel_saturated(), ref.superpixel_saturated()
-            low = settings.underexposure_level * 4.0
-            under = (s_img < low * skin.full_scale_dn) | (f_img < low * ref.full_scale_dn)
-            box = roi_to_superpixels(roi, s_img.shape, settings.gray_card_inset) if roi is not None else None
-            card = [roi_to_superpixels(roi, s_img.shape)] if roi is not None else []
-            check_reference(s_img, f_img, card, ref_name)
-            gray_ref = gray_skin = None
-            if settings.gray_card:
-                gray_ref = gray_card_level(f_img, box, sat_ref, ref_name)
-                gray_skin = gray_card_level(s_img, box, sat_skin, skin_name)
-            factors = band_factors(
-                settings, rig, w, gray_reference=gray_ref, gray_skin=gray_skin,
-                exposure_reference=bf.reference.exposure, exposure_skin=bf.skin.exposure,
-            )
-            # skin over reference at the same camera pixels: the reflectance up to the band's scalar
-            # factors, flat across the frame (vignetting and the flash's shape cancel)
-            ratio, defined = reflectance_ratio(s_img, f_img, 1.0)
-        with clock("window"):
-            win = find_window(
-                ratio, exclude=card, min_area_fraction=settings.window_min_area_fraction,
-                max_ring_ratio=settings.window_max_ring_ratio, edge_model=settings.window_edge_model,
-                cell_weights=weights, name=skin_name,
-            )
-        with clock("corrections"):
-            inside = np.zeros(s_img.shape, np.uint8)
-            cv2.fillConvexPoly(inside, np.round(win.corners * 16).astype(np.int32), 1, shift=4)
-            inside = inside.astype(bool)
-            sat = sat_skin | sat_ref
-            if settings.flat_field:
-                refl = ratio * np.float32(factors.scale)
-            else:
-                refl, defined = reflectance_ratio(s_img, f_img, factors.scale, float(np.median(f_img[inside])))
-            valid = defined & ~sat & ~under
-            sat_fraction = float(np.mean(sat[inside]))
-            under_fraction = float(np.mean((under & ~sat)[inside]))
-        with clock("rectify"):
-            rectified.append(rectify(refl, win.corners, geo.rectify_px, settings.interpolation))
-            valid_maps.append(rectify(valid.astype(np.float32), win.corners, geo.rectify_px, "linear"))
-        flags += exposure_flags(w, sat_fraction, under_fraction, settings)
-        if settings.gray_card:
-            flags += gray_card_flags(w, factors.flash_factor, settings)
-        if settings.window_edge_model and win.model_sides < 4:
-            failed = 4 - win.model_sides
-            flags.append(Flag("edge_model", w, f"{w:g} nm: edge model failed on {failed} window side(s); derivative peaks used", failed))
-        thumbs.append(thumbnail(s_img, win.corners, box))
-        per_band.append(
-            {
-                "wavelength_nm": w,
-                "skin_file": bf.skin.file,
-                "reference_file": bf.reference.file,
-                "exposure": {"skin": bf.skin.exposure.model_dump(), "reference": bf.reference.exposure.model_dump()},
-                **factors.as_dict(),
-                "gray_card_dn": None if gray_ref is None else {"reference": gray_ref, "skin": gray_skin},
-                "window_corners_px": superpixel_to_raw_xy(win.corners, centroid).tolist(),
-                "cell_centroid_px": list(centroid),
-                "window_edge_rms_px": 2.0 * win.edge_rms_px,
-                "window_blur_px": _finite(2.0 * win.blur_px),
-                "saturated_fraction": sat_fraction,
-                "underexposed_fraction": under_fraction,
-            }
-        )
-        done += 1
-        _report(progress, done, total, f"{w:g} nm calibrated")
-
-    stack, vstack = np.stack(rectified), np.stack(valid_maps)
-    per_rect = geo.cube_px / geo.rectify_px
+    bands = []
+    for k, frames in enumerate(inputs.bands):
+        bands.append(_calibrate_band(frames, dark, dark_sp, inputs, settings, clock))
+        _report(progress, 2 + k, total, f"{frames.wavelength_nm:g} nm calibrated")
+    stack, valid = np.stack([b.rectified for b in bands]), np.stack([b.valid for b in bands])
     with clock("align"):
-        shifts = np.zeros((len(bands), 2))
-        correlation = np.ones(len(bands))
-        applied = np.zeros(len(bands), bool)
-        if settings.align_bands and len(bands) > 1:
-            al = align_bands(
-                stack, ref_index, valid=vstack >= 0.999, motion=settings.align_motion, border=settings.align_border,
-                max_shift_px=settings.max_alignment_px / per_rect,
-            )
-            shifts, correlation = al.shifts_px * per_rect, al.correlation
-            flags += alignment_flags(wavelengths, shifts, al.converged, settings)
-            # Each band's window is cut from its own frame, which registers the bands to the corners'
-            # accuracy (~0.03 cube px); ECC across bands of different contrast is biased by 0.1–0.2 cube px
-            # (measured on simulated sessions), so only a larger shift — skin that slid under the tape — is applied.
-            applied = al.converged & (np.hypot(shifts[:, 0], shifts[:, 1]) >= settings.align_min_shift_px)
-            if applied.any():
-                al = replace(al, warps=np.where(applied[:, None, None], al.warps, np.eye(2, 3, dtype=np.float32)))
-                stack = apply_alignment(stack, al, settings.interpolation)
-                vstack = apply_alignment(vstack, al, "linear")
-    done += 1
-    _report(progress, done, total, "bands aligned")
+        stack, valid, alignment = _align(stack, valid, inputs, settings)
+    _report(progress, total - 1, total, "bands aligned")
     with clock("rectify"):
-        factor = geo.rectify_px // geo.cube_px
-        cube_r = box_filter(stack, factor).astype(np.float32)
-        mask = (box_filter(vstack, factor) >= 0.999).all(axis=0)
-        m = settings.edge_margin_px
-        if m:
-            mask[:m], mask[-m:], mask[:, :m], mask[:, -m:] = False, False, False, False
-    for k, entry in enumerate(per_band):
-        entry["alignment_shift_px"] = [_finite(v) for v in shifts[k]]
-        entry["alignment_applied"] = bool(applied[k])
-        entry["alignment_correlation"] = _finite(correlation[k])
+        cube_r, mask = _to_cube_grid(stack, valid, inputs.rig, settings)
+    entries = _band_entries(bands, alignment, cube_r, mask)
+    flags = [f for b in bands for f in b.flags] + alignment.flags
+    cube = Cube(torch.from_numpy(cube_r), torch.from_numpy(mask), _cube_header(inputs, entries, settings))
+    report = _calibration_report(inputs, entries, flags, mask, settings)
+    with clock("write"):
+        cube_path, sheet = _write_images(cube, bands, entries, flags, inputs)
+    report["timings_s"] = {**{k: round(v, 4) for k, v in timings.items()}, "total": round(sum(timings.values()), 4)}
+    report_path = atomic_write(inputs.out / REPORT_NAME, (json.dumps(report, indent=2, allow_nan=False) + "\n").encode(), prefix=".calibration-")
+    _report(progress, total, total, f"written to {inputs.out}")
+    return CalibrationResult(cube, inputs.out, cube_path, report_path, sheet, report, flags, report["timings_s"])
+
+
+def _verify(session: Path, out_dir: str | Path | None, overwrite: bool, settings: CalibrationSettings) -> _Inputs:
+    """The manifest, its rig and every frame checked; the output folder chosen and checked."""
+    manifest = read_manifest(session)
+    rig = manifest.rig_config()
+    geo = rig.geometry
+    if geo.rectify_px % geo.cube_px:
+        raise CalibrationError(f"rig geometry: rectify_px {geo.rectify_px} is not a multiple of cube_px {geo.cube_px}")
+    out = _output_dir(session, out_dir, overwrite)
+    dark_record, bands = select_frames(manifest, rig, settings.dark_frame)
+    paths = verify_files(session, manifest.frames)
+    roi = settings.gray_card_roi_px or geo.gray_card_roi_px
+    if settings.gray_card and roi is None:
+        raise CalibrationError(
+            f"{session}: the rig in the manifest has no geometry.gray_card_roi_px; give the card's region "
+            "(calibration setting gray_card_roi_px, or --gray-card-roi x0,y0,x1,y1) or switch the gray card off (--no-gray-card)"
+        )
+    wavelengths = [b.wavelength_nm for b in bands]
+    dark_file = dark_record.file if settings.dark_frame else None
+    return _Inputs(session, rig, out, dark_file, bands, paths, roi, _reference_band(wavelengths, settings.align_reference_nm))
+
+
+def _calibrate_band(
+    bf: BandFrames, dark: Optional[RawImage], dark_sp: Optional[np.ndarray], inputs: _Inputs, settings: CalibrationSettings, clock,
+) -> _Band:
+    """Decode a band's reference and skin frames, correct them, find the window, rectify it (``dark_sp``:
+    the black frame's superpixels)."""
+    w, roi, geo = bf.wavelength_nm, inputs.roi, inputs.rig.geometry
+    with clock("decode"):
+        ref = _decode(inputs.paths[bf.reference.file], f"reference frame, {w:g} nm", settings)
+        skin = _decode(inputs.paths[bf.skin.file], f"skin frame, {w:g} nm", settings)
+    skin_name, ref_name = f"{skin.path} (skin frame, {w:g} nm)", f"{ref.path} (reference frame, {w:g} nm)"
+    for frame, name in ((ref, ref_name), (skin, skin_name)):
+        if dark is not None and frame.shape != dark.shape:
+            raise CalibrationError(f"{name}: {frame.shape[1]}×{frame.shape[0]} px, the black frame {dark.shape[1]}×{dark.shape[0]}")
+    if ref.shape != skin.shape:
+        raise CalibrationError(f"{skin_name}: {skin.shape[1]}×{skin.shape[0]} px, its reference {ref.shape[1]}×{ref.shape[0]}")
+    with clock("corrections"):
+        s_img = subtract_dark(skin.superpixel(), dark_sp)
+        f_img = subtract_dark(ref.superpixel(), dark_sp)
+        flat = ref.values if dark is None else ref.values - dark.values
+        weights, centroid = cell_weights(flat), cell_centroid(flat)
+        sat_skin, sat_ref = skin.superpixel_saturated(), ref.superpixel_saturated()
+        low = settings.underexposure_level * 4.0
+        under = (s_img < low * skin.full_scale_dn) | (f_img < low * ref.full_scale_dn)
+        box = roi_to_superpixels(roi, s_img.shape, settings.gray_card_inset) if roi is not None else None
+        card = [roi_to_superpixels(roi, s_img.shape)] if roi is not None else []
+        check_reference(s_img, f_img, card, ref_name)
+        gray_ref = gray_skin = None
+        if settings.gray_card:
+            gray_ref = gray_card_level(f_img, box, sat_ref, ref_name)
+            gray_skin = gray_card_level(s_img, box, sat_skin, skin_name)
+        factors = band_factors(
+            settings, inputs.rig, w, gray_reference=gray_ref, gray_skin=gray_skin,
+            exposure_reference=bf.reference.exposure, exposure_skin=bf.skin.exposure,
+        )
+        # skin over reference at the same camera pixels: the reflectance up to the band's scalar
+        # factors, flat across the frame (vignetting and the flash's shape cancel)
+        ratio, defined = reflectance_ratio(s_img, f_img, 1.0)
+    with clock("window"):
+        win = find_window(
+            ratio, exclude=card, min_area_fraction=settings.window_min_area_fraction,
+            max_ring_ratio=settings.window_max_ring_ratio, edge_model=settings.window_edge_model,
+            cell_weights=weights, name=skin_name,
+        )
+    with clock("corrections"):
+        inside = np.zeros(s_img.shape, np.uint8)
+        cv2.fillConvexPoly(inside, np.round(win.corners * 16).astype(np.int32), 1, shift=4)
+        inside = inside.astype(bool)
+        sat = sat_skin | sat_ref
+        if settings.flat_field:
+            refl = ratio * np.float32(factors.scale)
+        else:
+            refl, defined = reflectance_ratio(s_img, f_img, factors.scale, float(np.median(f_img[inside])))
+        valid = defined & ~sat & ~under
+        sat_fraction = float(np.mean(sat[inside]))
+        under_fraction = float(np.mean((under & ~sat)[inside]))
+    with clock("rectify"):
+        rectified = rectify(refl, win.corners, geo.rectify_px, settings.interpolation)
+        valid_rect = rectify(valid.astype(np.float32), win.corners, geo.rectify_px, "linear")
+    flags = exposure_flags(w, sat_fraction, under_fraction, settings)
+    if settings.gray_card:
+        flags += gray_card_flags(w, factors.flash_factor, settings)
+    if settings.window_edge_model and win.model_sides < 4:
+        failed = 4 - win.model_sides
+        flags.append(Flag("edge_model", w, f"{w:g} nm: edge model failed on {failed} window side(s); derivative peaks used", failed))
+    entry = {
+        "wavelength_nm": w,
+        "skin_file": bf.skin.file,
+        "reference_file": bf.reference.file,
+        "exposure": {"skin": bf.skin.exposure.model_dump(), "reference": bf.reference.exposure.model_dump()},
+        **factors.as_dict(),
+        "gray_card_dn": None if gray_ref is None else {"reference": gray_ref, "skin": gray_skin},
+        "window_corners_px": superpixel_to_raw_xy(win.corners, centroid).tolist(),
+        "cell_centroid_px": list(centroid),
+        "window_edge_rms_px": 2.0 * win.edge_rms_px,
+        "window_blur_px": _finite(2.0 * win.blur_px),
+        "saturated_fraction": sat_fraction,
+        "underexposed_fraction": under_fraction,
+    }
+    return _Band(rectified, valid_rect, flags, thumbnail(s_img, win.corners, box), entry)
+
+
+def _align(stack: np.ndarray, valid: np.ndarray, inputs: _Inputs, settings: CalibrationSettings):
+    """Measure the bands' shifts against the reference band; apply those beyond ``align_min_shift_px``."""
+    geo, n = inputs.rig.geometry, stack.shape[0]
+    per_rect = geo.cube_px / geo.rectify_px
+    alignment = _Alignment(np.zeros((n, 2)), np.ones(n), np.zeros(n, bool), [])
+    if not settings.align_bands or n < 2:
+        return stack, valid, alignment
+    al = align_bands(
+        stack, inputs.reference_index, valid=valid >= _VALID_SHARE, motion=settings.align_motion, border=settings.align_border,
+        max_shift_px=settings.max_alignment_px / per_rect,
+    )
+    shifts = al.shifts_px * per_rect
+    # Each band's window is cut from its own frame, which registers the bands to the corners'
+    # accuracy (~0.03 cube px); ECC across bands of different contrast is biased by 0.1–0.2 cube px
+    # (measured on simulated sessions), so only a larger shift — skin that slid under the tape — is applied.
+    applied = al.converged & (np.hypot(shifts[:, 0], shifts[:, 1]) >= settings.align_min_shift_px)
+    flags = alignment_flags([b.wavelength_nm for b in inputs.bands], shifts, al.converged, settings)
+    if applied.any():
+        al = replace(al, warps=np.where(applied[:, None, None], al.warps, np.eye(2, 3, dtype=np.float32)))
+        stack = apply_alignment(stack, al, settings.interpolation)
+        valid = apply_alignment(valid, al, "linear")
+    return stack, valid, _Alignment(shifts, al.correlation, applied, flags)
+
+
+def _to_cube_grid(stack: np.ndarray, valid: np.ndarray, rig: RigConfig, settings: CalibrationSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Box-filter the rectified bands to ``cube_px``²; the mask: valid in every band, off the edge margin."""
+    factor = rig.geometry.rectify_px // rig.geometry.cube_px
+    cube_r = box_filter(stack, factor).astype(np.float32)
+    mask = (box_filter(valid, factor) >= _VALID_SHARE).all(axis=0)
+    m = settings.edge_margin_px
+    if m:
+        mask[:m], mask[-m:], mask[:, :m], mask[:, -m:] = False, False, False, False
+    return cube_r, mask
+
+
+def _band_entries(bands: list[_Band], alignment: _Alignment, cube_r: np.ndarray, mask: np.ndarray) -> list[dict]:
+    """Each band's ``calibration.json`` entry, completed with its alignment and the cube's statistics."""
+    entries = []
+    for k, band in enumerate(bands):
+        entry = dict(band.entry)
+        entry["alignment_shift_px"] = [_finite(v) for v in alignment.shifts[k]]
+        entry["alignment_applied"] = bool(alignment.applied[k])
+        entry["alignment_correlation"] = _finite(alignment.correlation[k])
         entry["snr"] = _finite(_snr(cube_r[k], mask))
         entry["median_reflectance"] = _finite(float(np.median(cube_r[k][mask])) if mask.any() else float("nan"))
+        entries.append(entry)
+    return entries
 
-    mm = geo.window_mm / geo.cube_px
-    meta = {
-        "session": str(session),
-        "camera_angle_deg": rig.camera.angle_deg,
-        "window_mm": geo.window_mm,
-        "window_corners_px": {f"{e['wavelength_nm']:g}": e["window_corners_px"] for e in per_band},
-        "alignment_shift_px": {f"{e['wavelength_nm']:g}": e["alignment_shift_px"] for e in per_band},
-        "alignment_applied": {f"{e['wavelength_nm']:g}": e["alignment_applied"] for e in per_band},
-        "reference_band_nm": wavelengths[ref_index],
-        "settings": settings.model_dump(mode="json"),
-        "calibration": REPORT_NAME,
-    }
-    cube = Cube(torch.from_numpy(cube_r), torch.tensor(wavelengths, dtype=torch.float64), torch.from_numpy(mask), mm, meta)
-    report = {
-        "session": str(session),
-        "software_version": _version(),
+
+def _cube_header(inputs: _Inputs, entries: list[dict], settings: CalibrationSettings) -> CubeHeader:
+    """The cube's header: the bands, their filters' widths and the camera angle from the rig."""
+    rig, geo = inputs.rig, inputs.rig.geometry
+    wavelengths = [b.wavelength_nm for b in inputs.bands]
+    by_band = lambda key: {f"{e['wavelength_nm']:g}": e[key] for e in entries}  # noqa: E731
+    return CubeHeader(
+        wavelengths_nm=wavelengths,
+        band_fwhm_nm=[rig.band(w).fwhm_nm for w in wavelengths],
+        camera_angle_deg=rig.camera.angle_deg,
+        mm_per_pixel=geo.window_mm / geo.cube_px,
+        provenance=Provenance(session=str(inputs.session), made_by="skinlayers calibrate", created=now_iso(), rig=rig.name),
+        calibration={
+            "report": REPORT_NAME,
+            "window_mm": geo.window_mm,
+            "window_corners_px": by_band("window_corners_px"),
+            "alignment_shift_px": by_band("alignment_shift_px"),
+            "alignment_applied": by_band("alignment_applied"),
+            "reference_band_nm": wavelengths[inputs.reference_index],
+            "settings": settings.model_dump(mode="json"),
+        },
+    )
+
+
+def _calibration_report(inputs: _Inputs, entries: list[dict], flags: list[Flag], mask: np.ndarray, settings: CalibrationSettings) -> dict:
+    """``calibration.json``'s content (the stage times are added once everything is written)."""
+    rig, geo = inputs.rig, inputs.rig.geometry
+    return {
+        "session": str(inputs.session),
+        "software_version": software_version(),
         "created": now_iso(),
         "rig": rig.name,
         "camera_angle_deg": rig.camera.angle_deg,
         "window_mm": geo.window_mm,
         "rectify_px": geo.rectify_px,
         "cube_px": geo.cube_px,
-        "mm_per_pixel": mm,
-        "reference_band_nm": wavelengths[ref_index],
+        "mm_per_pixel": geo.window_mm / geo.cube_px,
+        "reference_band_nm": inputs.bands[inputs.reference_index].wavelength_nm,
         "mask_valid_fraction": float(mask.mean()),
-        "bands": per_band,
+        "bands": entries,
         "flags": [f.as_dict() for f in flags],
         "settings": settings.model_dump(mode="json"),
         "outputs": {"cube": CUBE_NAME, "contact_sheet": SHEET_NAME},
     }
-    with clock("write"):
-        out.mkdir(parents=True, exist_ok=True)
-        cube_path = write_cube(out / CUBE_NAME, cube)
-        sheet = write_contact_sheet(
-            out / SHEET_NAME, wavelengths, thumbs, cube_r, mask,
-            [_caption(e, k == ref_index) for k, e in enumerate(per_band)], [any(f.band_nm == w for f in flags) for w in wavelengths],
-            f"{session.name}: {len(bands)} bands, {len(flags)} flag(s), {mask.mean():.0%} of the window valid",
-        )
-    report["timings_s"] = {**{k: round(v, 4) for k, v in timings.items()}, "total": round(sum(timings.values()), 4)}
-    report_path = _write_json(out / REPORT_NAME, report)
-    _report(progress, total, total, f"written to {out}")
-    return CalibrationResult(cube, out, cube_path, report_path, sheet, report, flags, report["timings_s"])
+
+
+def _write_images(cube: Cube, bands: list[_Band], entries: list[dict], flags: list[Flag], inputs: _Inputs) -> tuple[Path, Path]:
+    """``cube.exr`` and ``contact_sheet.png`` into the output folder."""
+    out, wavelengths = inputs.out, cube.header.wavelengths_nm
+    out.mkdir(parents=True, exist_ok=True)
+    cube_path = write_cube(out / CUBE_NAME, cube)
+    cube_r, mask = cube.reflectance.numpy(), cube.mask.numpy()
+    sheet = write_contact_sheet(
+        out / SHEET_NAME, wavelengths, [b.thumb for b in bands], cube_r, mask,
+        [_caption(e, k == inputs.reference_index) for k, e in enumerate(entries)], [any(f.band_nm == w for f in flags) for w in wavelengths],
+        f"{inputs.session.name}: {len(bands)} bands, {len(flags)} flag(s), {mask.mean():.0%} of the window valid",
+    )
+    return cube_path, sheet
 
 
 def _output_dir(session: Path, out_dir: str | Path | None, overwrite: bool) -> Path:
@@ -349,7 +439,3 @@ def _stage_clock(timings: dict[str, float]):
             timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - start
 
     return clock
-
-
-def _write_json(path: Path, data: dict) -> Path:
-    return atomic_write(path, (json.dumps(data, indent=2, allow_nan=False) + "\n").encode(), prefix=".calibration-")

@@ -10,22 +10,21 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field
 
-from ..model.settings import load_settings
+from ..formats.errors import SettingsError
+from ..formats.settings import PixelBox, Strict, load_settings
 from .errors import CalibrationError
 
 __all__ = ["CalibrationSettings", "SettingsFileError", "load_calibration_settings"]
 
 
-class SettingsFileError(CalibrationError):
+class SettingsFileError(CalibrationError, SettingsError):
     """A calibration settings file or value that cannot be used; names the file, key and problem."""
 
 
-class CalibrationSettings(BaseModel):
+class CalibrationSettings(Strict):
     """Switches of every correction and the thresholds of the quality checks."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
 
     # Corrections (corrections.py: R = (S − D)/(F − D) · g_F/g_S · ρ_spectralon · f_spectralon/f_skin).
     dark_frame: bool = Field(
@@ -46,10 +45,8 @@ class CalibrationSettings(BaseModel):
     )
     polarization: bool = Field(True, description="Apply the rig's polarization factors (spectralon_factor / skin_factor).")
     align_bands: bool = Field(True, description="Align the rectified bands to the reference band (ECC on gradient images).")
-    gray_card_roi_px: Optional[list[int]] = Field(
+    gray_card_roi_px: Optional[PixelBox] = Field(
         None,
-        min_length=4,
-        max_length=4,
         description="[x0, y0, x1, y1] raw pixels of the gray card, replacing the rig's geometry.gray_card_roi_px.",
     )
     gray_card_inset: float = Field(
@@ -123,13 +120,6 @@ class CalibrationSettings(BaseModel):
     max_flagged_fraction: float = Field(
         0.05, ge=0, le=1, description="Flag a band whose saturated or under-exposed share of the window exceeds this."
     )
-
-    @model_validator(mode="after")
-    def _roi(self) -> "CalibrationSettings":
-        r = self.gray_card_roi_px
-        if r is not None and not (0 <= r[0] < r[2] and 0 <= r[1] < r[3]):
-            raise ValueError(f"gray_card_roi_px must be [x0, y0, x1, y1] with 0 <= x0 < x1 and 0 <= y0 < y1, got {r}")
-        return self
 
 
 def load_calibration_settings(path: str | Path | None = None, **overrides) -> CalibrationSettings:

@@ -1,13 +1,23 @@
 """The physics of skinlayers: spectra, layer profiles, Gaussian tables, layered skin, colour.
 
-Pure, differentiable functions on tensors (CPU or CUDA alike); imports nothing else of the project.
+Pure, differentiable functions on tensors (CPU or CUDA alike); imports nothing of the project but
+its contracts (``formats``).
 """
 
 from .colour import ColourConverter, ita_degrees
 from .fresnel import diffuse_fresnel_reflectance, fresnel_reflectance, fresnel_transmittance
 from .gaussians import fit_gaussian_weights, gaussian_sum_hankel, gaussian_sum_profile
 from .layered import LayerTransforms, SkinModel, combine_layers, inverse_hankel
-from .params import PARAMETER_BOUNDS, PARAMETER_NAMES, TABLE2, LayerAbsorption, SkinParams, layer_absorption
+from .params import (
+    N_PARAMS,
+    PARAMETER_BOUNDS,
+    PARAMETER_NAMES,
+    TABLE2,
+    LayerAbsorption,
+    SkinParams,
+    layer_absorption,
+    parameter_bounds,
+)
 from .profiles import (
     LayerProfiles,
     dipole_hankel,
@@ -22,6 +32,7 @@ from .spectra import ChromophoreSpectra, chromophore_spectra, epidermis_scatteri
 from .tables import ProfileTables, build_profile_tables, load_profile_tables
 
 __all__ = [
+    "N_PARAMS",
     "PARAMETER_BOUNDS",
     "PARAMETER_NAMES",
     "TABLE2",
@@ -58,4 +69,5 @@ __all__ = [
     "multipole_hankel",
     "multipole_profiles",
     "multipole_totals",
+    "parameter_bounds",
 ]

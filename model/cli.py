@@ -12,6 +12,7 @@ import torch
 import typer
 import yaml
 
+from ..formats.errors import InputError
 from .colour import ColourConverter, ita_degrees
 from .layered import SkinModel
 from .params import PARAMETER_NAMES, TABLE2, SkinParams
@@ -40,37 +41,37 @@ def parse_wavelengths(text: str) -> torch.Tensor:
         else:
             values = [float(p) for p in text.split(",") if p.strip()]
     except ValueError:
-        raise ValueError(
+        raise InputError(
             f"--wavelengths {text!r}: expected start:stop:step (stop included, step > 0) or a comma list in nm"
         ) from None
     if not values:
-        raise ValueError("--wavelengths: no wavelengths given")
+        raise InputError("--wavelengths: no wavelengths given")
     if any(not math.isfinite(v) for v in values):
-        raise ValueError("--wavelengths: values must be finite numbers")
+        raise InputError("--wavelengths: values must be finite numbers")
     if sorted(set(values)) != values:
-        raise ValueError("--wavelengths: values must increase")
+        raise InputError("--wavelengths: values must increase")
     return torch.tensor(values, dtype=torch.float64)
 
 
 def _params_from(preset: str, params_file: Optional[Path], overrides: dict[str, Optional[float]]) -> SkinParams:
     if preset not in TABLE2:
-        raise ValueError(f"--preset {preset!r}: unknown; choose one of: {', '.join(TABLE2)}")
+        raise InputError(f"--preset {preset!r}: unknown; choose one of: {', '.join(TABLE2)}")
     values: dict[str, object] = dict(TABLE2[preset])
     if params_file is not None:
         try:
             loaded = yaml.safe_load(Path(params_file).read_text())
         except OSError as exc:
-            raise ValueError(f"{params_file}: cannot read ({exc.strerror or exc})") from None
+            raise InputError(f"{params_file}: cannot read ({exc.strerror or exc})") from None
         except yaml.YAMLError as exc:
-            raise ValueError(f"{params_file}: not valid YAML/JSON ({exc})") from None
+            raise InputError(f"{params_file}: not valid YAML/JSON ({exc})") from None
         if not isinstance(loaded, dict):
-            raise ValueError(f"{params_file}: expected a mapping of parameter names to values")
+            raise InputError(f"{params_file}: expected a mapping of parameter names to values")
         unknown = sorted(set(loaded) - set(PARAMETER_NAMES))
         if unknown:
-            raise ValueError(f"{params_file}: unknown key(s) {', '.join(unknown)} (expected {', '.join(PARAMETER_NAMES)})")
+            raise InputError(f"{params_file}: unknown key(s) {', '.join(unknown)} (expected {', '.join(PARAMETER_NAMES)})")
         for k, v in loaded.items():
             if not isinstance(v, (int, float)) or isinstance(v, bool):
-                raise ValueError(f"{params_file}: {k} must be a number, got {v!r}")
+                raise InputError(f"{params_file}: {k} must be a number, got {v!r}")
         values.update(loaded)
     values.update({k: v for k, v in overrides.items() if v is not None})
     return SkinParams.from_mapping(values).validate()
@@ -244,9 +245,9 @@ def _device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda: no CUDA device is available")
+        raise InputError("--device cuda: no CUDA device is available")
     if name not in ("cpu", "cuda"):
-        raise ValueError(f"--device {name!r}: expected auto, cpu or cuda")
+        raise InputError(f"--device {name!r}: expected auto, cpu or cuda")
     return torch.device(name)
 
 
@@ -271,7 +272,9 @@ def render(
     """
     from .edits import add_absorbance, apply_edit, swap_chromophore  # noqa: PLC0415
     from .illumination import parse_light  # noqa: PLC0415
-    from .maps_io import read_absorbance, read_maps, write_spectral  # noqa: PLC0415
+    from ..formats.exr import write_spectral  # noqa: PLC0415
+    from ..formats.maps import read_absorbance  # noqa: PLC0415
+    from .maps_io import read_maps  # noqa: PLC0415
     from .renderer import SkinRenderer  # noqa: PLC0415
 
     settings = load_model_settings(config)
@@ -282,14 +285,14 @@ def render(
     for item in swap:
         name, _, path = item.partition("=")
         if not path:
-            raise ValueError(f"--swap {item!r}: expected NAME=FILE.exr")
+            raise InputError(f"--swap {item!r}: expected NAME=FILE.exr")
         maps = swap_chromophore(maps, read_maps(path), name.strip())
     for item in edit:
         maps = apply_edit(maps, item)
     if tattoo is not None:
         ink, ink_wl, ink_mm = read_absorbance(tattoo)
         if abs(ink_mm - maps.mm_per_pixel) > 1e-6 * maps.mm_per_pixel:
-            raise ValueError(f"{tattoo}: mm_per_pixel {ink_mm:g} differs from the maps' {maps.mm_per_pixel:g}")
+            raise InputError(f"{tattoo}: mm_per_pixel {ink_mm:g} differs from the maps' {maps.mm_per_pixel:g}")
         maps = add_absorbance(maps, ink, ink_wl)
     start = time.perf_counter()
     result = SkinRenderer(settings).render(

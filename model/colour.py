@@ -1,11 +1,12 @@
-"""Reflectance spectra to colour: CIE XYZ (1931 2° observer), CIELAB, sRGB (PHYSICS.md §6).
+"""Reflectance spectra to colour: CIE XYZ (1931 2° observer), CIELAB, sRGB (DWRR08 §7; CIE 1931;
+sRGB as IEC 61966-2-1).
 
 The tristimulus integral is linear in the reflectance, so for a fixed set of sample wavelengths it is
 a ``(3, L)`` matrix: built once per wavelength set from colour-science's observer and illuminant data
 by pushing unit spectra through colour-science's linear interpolator (constant extrapolation) onto
 its 1 nm grid. Linear, not Sprague or spline: with the paper's 8 render samples 35 nm apart, the
-smooth interpolators overshoot between samples and double the colour error against 151 samples
-(measured: ΔE2000 worst 1.05 with Sprague, 0.85 linear, over the Table 2 skins under D65). Everything after is tensor maths,
+smooth interpolators overshoot between samples and raise the colour error against 151 samples
+(docs/model.md). Everything after is tensor maths,
 batched and differentiable, on any device.
 
 XYZ is normalised so that the perfect white under the illuminant has Y = 1; sRGB is reached by
@@ -18,6 +19,8 @@ import warnings
 
 import numpy as np
 import torch
+
+from ..formats.errors import InputError
 
 __all__ = ["ColourConverter", "delta_e_2000", "ita_degrees", "srgb_encode"]
 
@@ -49,9 +52,9 @@ class ColourConverter:
         colour = _colour()
         w = np.asarray(torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1).cpu())
         if w.size < 2 or np.any(np.diff(w) <= 0):
-            raise ValueError("colour needs at least two increasing wavelengths")
+            raise InputError("colour needs at least two increasing wavelengths")
         if illuminant not in colour.SDS_ILLUMINANTS:
-            raise ValueError(f"unknown illuminant {illuminant!r}; try D65, D50, A, E or F2")
+            raise InputError(f"unknown illuminant {illuminant!r}; try D65, D50, A, E or F2")
         self.wavelength_nm = torch.from_numpy(w)
         self.illuminant = illuminant
         with warnings.catch_warnings():

@@ -7,6 +7,7 @@ import re
 
 import torch
 
+from ..formats.errors import InputError
 from .maps import MapsError, SkinMaps
 from .params import PARAMETER_NAMES
 
@@ -26,14 +27,14 @@ _EDIT = re.compile(r"^\s*([A-Za-z_]+)\s*\*\s*([0-9.eE+-]+)\s*$")
 
 def _maps_of(name: str) -> tuple[str, ...]:
     if name not in CHROMOPHORES:
-        raise ValueError(f"unknown chromophore {name!r}; use one of {', '.join(CHROMOPHORES)}")
+        raise InputError(f"unknown chromophore {name!r}; use one of {', '.join(CHROMOPHORES)}")
     return CHROMOPHORES[name]
 
 
 def scale_chromophore(maps: SkinMaps, name: str, factor: float) -> SkinMaps:
     """Multiply a chromophore's map(s) by ``factor`` (β_m is clipped to 0–1)."""
     if not factor >= 0:
-        raise ValueError(f"scale factor must be >= 0, got {factor}")
+        raise InputError(f"scale factor must be >= 0, got {factor}")
     changes = {}
     for channel in _maps_of(name):
         value = getattr(maps, channel) * factor
@@ -68,9 +69,9 @@ def apply_edit(maps: SkinMaps, text: str) -> SkinMaps:
     """``NAME*FACTOR``, e.g. ``hemoglobin*1.5`` or ``melanin*0.5``."""
     m = _EDIT.match(text)
     if not m:
-        raise ValueError(f"--edit {text!r}: expected NAME*FACTOR, e.g. hemoglobin*1.5")
+        raise InputError(f"--edit {text!r}: expected NAME*FACTOR, e.g. hemoglobin*1.5")
     try:
         factor = float(m.group(2))
     except ValueError:
-        raise ValueError(f"--edit {text!r}: {m.group(2)!r} is not a number") from None
+        raise InputError(f"--edit {text!r}: {m.group(2)!r} is not a number") from None
     return scale_chromophore(maps, m.group(1), factor)

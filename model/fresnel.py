@@ -1,8 +1,8 @@
 """Fresnel terms of smooth dielectric boundaries.
 
 Relative index ``eta`` is always the index of the medium the light is in over the index of the
-medium beyond the boundary (PHYSICS.md §2): the epidermis under air has ``eta = 1.40``, the dermis
-under the epidermis ``eta = 1.38 / 1.40``.
+medium beyond the boundary (Donner & Jensen 2005; indices 1.40 and 1.38 from DWRR08 §5.1): the
+epidermis under air has ``eta = 1.40``, the dermis under the epidermis ``eta = 1.38 / 1.40``.
 """
 
 from __future__ import annotations

@@ -14,10 +14,12 @@ from dataclasses import dataclass
 
 import torch
 
+from ..formats.errors import InputError
+
 __all__ = ["Light", "parse_light"]
 
-#: Skin beyond the maps, when neither the light nor the settings say (DWRR08 §6.3 uses 1 cm; 5 mm
-#: changes a 7.5 mm window's pixels by < 10⁻⁴ relative, measured: docs/renderer.md).
+#: Skin beyond the maps, when neither the light nor the settings say (DWRR08 §6.3 uses 1 cm; what 5 mm
+#: changes: docs/renderer.md).
 DEFAULT_BORDER_MM = 5.0
 
 
@@ -26,7 +28,7 @@ class Light:
     """``kind``: uniform, window, stripes, point or image.
 
     - window: a square of ``size_mm`` centred on the grid, lit; everything else (rest of the grid
-      and the border) dark — the black tape of the measurement (PHYSICS.md §7, §8);
+      and the border) dark — the black tape of the measurement (DWRR08 §6.1, §6.3);
     - stripes: lit bands of ``period_mm`` × ``duty`` across x, over grid and border;
     - point: unit power into the centre pixel (irradiance 1/pixel area), for profile checks;
     - image: ``image`` ``(H, W)`` or ``(B, H, W)`` on the maps' grid, dark border.
@@ -41,15 +43,15 @@ class Light:
 
     def __post_init__(self) -> None:
         if self.kind not in ("uniform", "window", "stripes", "point", "image"):
-            raise ValueError(f"light must be uniform, window, stripes, point or image, not {self.kind!r}")
+            raise InputError(f"light must be uniform, window, stripes, point or image, not {self.kind!r}")
         if self.kind == "window" and not self.size_mm > 0:
-            raise ValueError("window size must be > 0 mm")
+            raise InputError("window size must be > 0 mm")
         if self.kind == "stripes" and not (self.period_mm > 0 and 0 < self.duty <= 1):
-            raise ValueError("stripes need a period > 0 mm and a duty cycle in (0, 1]")
+            raise InputError("stripes need a period > 0 mm and a duty cycle in (0, 1]")
         if self.kind == "image" and self.image is None:
-            raise ValueError("an image light needs an irradiance image")
+            raise InputError("an image light needs an irradiance image")
         if self.border_mm is not None and self.border_mm < 0:
-            raise ValueError("border must be >= 0 mm")
+            raise InputError("border must be >= 0 mm")
 
     @property
     def extends(self) -> bool:
@@ -104,11 +106,11 @@ def parse_light(text: str) -> Light:
     try:
         values = [float(p) for p in parts[1:]]
     except ValueError:
-        raise ValueError(f"--light {text!r}: numbers expected after the kind, e.g. window:7.5 or stripes:2:0.5") from None
+        raise InputError(f"--light {text!r}: numbers expected after the kind, e.g. window:7.5 or stripes:2:0.5") from None
     if kind == "window" and len(values) <= 1:
         return Light("window", size_mm=values[0] if values else 7.5)
     if kind == "stripes" and len(values) <= 2:
         return Light("stripes", period_mm=values[0] if values else 2.0, duty=values[1] if len(values) > 1 else 0.5)
     if kind in ("uniform", "point") and not values:
         return Light(kind)
-    raise ValueError(f"--light {text!r}: expected uniform, window[:mm], stripes[:period_mm[:duty]] or point")
+    raise InputError(f"--light {text!r}: expected uniform, window[:mm], stripes[:period_mm[:duty]] or point")

@@ -1,4 +1,5 @@
-"""Homogeneous two-layer skin: the Fourier-domain layer combination (PHYSICS.md §2, §4).
+"""Homogeneous two-layer skin: the Fourier-domain layer combination (DWRR08 §3, Eq. 3; §4.2, Eq. 7–8;
+Donner & Jensen 2005).
 
 For homogeneous layers the heterogeneous transport of Eq. 7 collapses to products of 2D Fourier
 (Hankel) transforms. With the interface attenuation A = exp(-P) met twice per crossing,

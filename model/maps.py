@@ -11,16 +11,10 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
+from ..formats.maps import MAP_CHANNELS, MapsError
 from .params import PARAMETER_BOUNDS, PARAMETER_NAMES, SkinParams
 
 __all__ = ["MAP_CHANNELS", "MapsError", "SkinMaps"]
-
-#: Channel names of the map format, in order; ``rho_s`` is optional.
-MAP_CHANNELS = (*PARAMETER_NAMES, "rho_s")
-
-
-class MapsError(ValueError):
-    """Maps that cannot be rendered; the message names the channel and the problem."""
 
 
 @dataclass(frozen=True)

@@ -2,10 +2,9 @@
 
 Rendering allocates and frees many image-sized temporaries. glibc's allocator keeps freed heap
 memory for reuse and raises its mmap threshold dynamically, so the resident size of a long
-differentiable render grows with fragmentation far beyond the tensors alive (measured on a 64×64
-patch with its 1 cm border at nine bands, forward and backward: 1.9 GB resident, 0.5 GB with the heap
-trimmed on every free). Trimming costs time — returned pages are faulted in again (measured up to
-10× slower backward passes on these machines) — so it is a choice for memory-bound runs, not a default.
+differentiable render grows with fragmentation far beyond the tensors alive. Trimming costs time —
+returned pages are faulted in again — so it is a choice for memory-bound runs, not a default (both
+measured: docs/renderer.md, "Speed and memory").
 """
 
 from __future__ import annotations

@@ -11,18 +11,23 @@ from typing import Mapping
 
 import torch
 
+from ..formats.errors import InputError
+from ..formats.maps import PARAMETER_NAMES
 from .spectra import ChromophoreSpectra
 
 __all__ = [
+    "N_PARAMS",
     "PARAMETER_BOUNDS",
     "PARAMETER_NAMES",
     "TABLE2",
     "LayerAbsorption",
     "SkinParams",
     "layer_absorption",
+    "parameter_bounds",
 ]
 
-PARAMETER_NAMES = ("C_m", "beta_m", "C_he", "C_bc", "C_hd")
+#: Chromophore parameters per pixel: the width of every per-pixel tensor ``(N, N_PARAMS)``.
+N_PARAMS = len(PARAMETER_NAMES)
 
 #: Typical ranges of DWRR08 Table 1, used as the bounds of every fit.
 PARAMETER_BOUNDS: dict[str, tuple[float, float]] = {
@@ -32,6 +37,14 @@ PARAMETER_BOUNDS: dict[str, tuple[float, float]] = {
     "C_bc": (0.0, 0.05),
     "C_hd": (0.0, 0.1),
 }
+
+
+def parameter_bounds(dtype: torch.dtype = torch.float64, device=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """``PARAMETER_BOUNDS`` as lower and upper bound tensors ``(N_PARAMS,)``, in the order of ``PARAMETER_NAMES``."""
+    lo = torch.tensor([PARAMETER_BOUNDS[n][0] for n in PARAMETER_NAMES], dtype=dtype, device=device)
+    hi = torch.tensor([PARAMETER_BOUNDS[n][1] for n in PARAMETER_NAMES], dtype=dtype, device=device)
+    return lo, hi
+
 
 #: DWRR08 Table 2: mean parameters per Fitzpatrick type, lower arm (β_m to the paper's digits).
 TABLE2: dict[str, dict[str, float]] = {
@@ -64,19 +77,19 @@ class SkinParams:
         """Build from a mapping with exactly the five keys; refuses unknown or missing keys."""
         unknown = sorted(set(values) - set(PARAMETER_NAMES))
         if unknown:
-            raise ValueError(f"unknown parameter(s): {', '.join(unknown)} (expected {', '.join(PARAMETER_NAMES)})")
+            raise InputError(f"unknown parameter(s): {', '.join(unknown)} (expected {', '.join(PARAMETER_NAMES)})")
         missing = [n for n in PARAMETER_NAMES if n not in values]
         if missing:
-            raise ValueError(f"missing parameter(s): {', '.join(missing)}")
+            raise InputError(f"missing parameter(s): {', '.join(missing)}")
         return cls(**{n: torch.as_tensor(values[n], dtype=dtype, device=device) for n in PARAMETER_NAMES})
 
     @classmethod
     def from_tensor(cls, x: torch.Tensor) -> "SkinParams":
-        """From ``(..., 5)`` in the order of ``PARAMETER_NAMES``."""
+        """From ``(..., N_PARAMS)`` in the order of ``PARAMETER_NAMES``."""
         return cls(*x.unbind(-1))
 
     def as_tensor(self) -> torch.Tensor:
-        """``(..., 5)`` in the order of ``PARAMETER_NAMES``."""
+        """``(..., N_PARAMS)`` in the order of ``PARAMETER_NAMES``."""
         return torch.stack(torch.broadcast_tensors(*self.values()), dim=-1)
 
     def values(self) -> tuple[torch.Tensor, ...]:
@@ -90,16 +103,16 @@ class SkinParams:
         for name in PARAMETER_NAMES:
             v = getattr(self, name)
             if not bool(torch.isfinite(v).all()):
-                raise ValueError(f"{name} must be a finite number")
+                raise InputError(f"{name} must be a finite number")
             if bool((v < 0).any()):
-                raise ValueError(f"{name} must be >= 0 (a volume fraction), got {float(v.min()):g}")
+                raise InputError(f"{name} must be >= 0 (a volume fraction), got {float(v.min()):g}")
         if bool((self.beta_m > 1).any()):
-            raise ValueError(f"beta_m must be <= 1 (the eumelanin share), got {float(self.beta_m.max()):g}")
+            raise InputError(f"beta_m must be <= 1 (the eumelanin share), got {float(self.beta_m.max()):g}")
         epi = self.C_m + self.C_he + self.C_bc
         if bool((epi > 1).any()):
-            raise ValueError(f"C_m + C_he + C_bc must be <= 1 (epidermal volume fractions), got {float(epi.max()):g}")
+            raise InputError(f"C_m + C_he + C_bc must be <= 1 (epidermal volume fractions), got {float(epi.max()):g}")
         if bool((self.C_hd > 1).any()):
-            raise ValueError(f"C_hd must be <= 1 (a volume fraction), got {float(self.C_hd.max()):g}")
+            raise InputError(f"C_hd must be <= 1 (a volume fraction), got {float(self.C_hd.max()):g}")
         return self
 
 

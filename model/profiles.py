@@ -1,8 +1,8 @@
 """Radial reflectance and transmittance profiles of one homogeneous layer: dipole and multipole.
 
-Jensen et al. 2001 (dipole, semi-infinite) and Donner & Jensen 2005 (multipole, slab), as written in
-PHYSICS.md §2. Every profile is radiant exitance per unit incident power (mm⁻²), radially symmetric,
-with internal reflection at both boundaries folded in through the extrapolated boundaries
+Jensen et al. 2001 (dipole, semi-infinite) and Donner & Jensen 2005 (multipole, slab); DWRR08 §3
+summarises the model. Every profile is radiant exitance per unit incident power (mm⁻²), radially
+symmetric, with internal reflection at both boundaries folded in through the extrapolated boundaries
 ``z_b = 2 A D``.
 
 Two evaluations of the same model are offered:
@@ -56,7 +56,8 @@ class LayerProfiles(NamedTuple):
 
 @dataclass(frozen=True)
 class SlabOptics:
-    """Derived diffusion constants of a layer (PHYSICS.md §2), broadcast over ``(...)``.
+    """Derived diffusion constants of a layer (Jensen et al. 2001; Donner & Jensen 2005), broadcast
+    over ``(...)``.
 
     ``z_b_top`` and ``z_b_bottom`` are the extrapolation distances of the boundary the light
     enters through and of the opposite one; ``source_depth_mm`` is ℓ (or its cap).
@@ -193,7 +194,7 @@ def multipole_profiles(
     source_depth: str = "mean_free_path",
     max_pairs: int = 100_000,
 ) -> LayerProfiles:
-    """R⁺, T⁺, R⁻, T⁻ of a slab in space (Donner & Jensen 2005, Eq. in PHYSICS.md §2), mm⁻², (..., N).
+    """R⁺, T⁺, R⁻, T⁻ of a slab in space (the multipole of Donner & Jensen 2005), mm⁻², (..., N).
 
     ``eta_top`` is the relative index at the top boundary (layer over medium above), ``eta_bottom``
     at the bottom one. The ``-`` profiles swap the roles of the two boundaries. ``tol`` bounds the

@@ -1,7 +1,9 @@
 """The radiometric convention of skinlayers, written once and used by renderer, simulator and fit.
 
 * Light in: the irradiance that enters the skin is Φ = F_t(θ_i) E, with F_t the smooth-surface
-  Fresnel transmittance from the medium above into the epidermis (PHYSICS.md §5).
+  Fresnel transmittance from the medium above into the epidermis (DWRR08 §6.2, after Jensen et al.
+  2001: under gel the surface is smooth, F_t = 1 - F_r; the project's convention: docs/model.md,
+  "Radiometric convention").
 * Inside: layer profiles give radiant exitance M per unit entering power; M already includes the
   internal reflections at the boundaries.
 * Light out: M is the flux that leaves the surface. Its radiance is taken to follow the smooth

@@ -1,4 +1,5 @@
-"""The heterogeneous, layered, spectral skin renderer (DWRR08 §4, Eq. 7–9; PHYSICS.md §4–5).
+"""The heterogeneous, layered, spectral skin renderer (DWRR08 §4.1–4.3, Eq. 5–9; light in and out:
+§5.1, §6.2 and docs/model.md, "Radiometric convention").
 
 Per band, with per-pixel Gaussian weights w_k^P(x) = w_k^P(σa(x)) looked up from the σa tables and
 the gather operator 𝒢_P[f](x) = Σ_k w_k^P(x) (f ∗ G_k)(x) (profile of the exit point), Eq. 7 reads

@@ -1,7 +1,8 @@
 """Typed settings of the skin model, with the published constants as defaults.
 
-Every number the physics uses lives here, once, with its source (PHYSICS.md; Donner et al. 2008,
-"DWRR08" below). YAML files (``configs/model.yaml``) override fields; unknown keys are refused.
+Every number the physics uses lives here, once, with its source (Donner et al. 2008, "DWRR08" below,
+and the primary references it builds on; each constant with its unit and source: docs/model.md,
+"Constants and units"). YAML files (``configs/model.yaml``) override fields; unknown keys are refused.
 """
 
 from __future__ import annotations
@@ -12,24 +13,18 @@ import math
 from pathlib import Path
 from typing import Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
+
+from ..formats.errors import SettingsError as BaseSettingsError
+from ..formats.settings import Strict, load_settings
 
 __all__ = ["ModelSettings", "RenderSettings", "SettingsError", "SkinOptics", "TableSettings", "load_model_settings"]
 
 PAPER_RENDER_WAVELENGTHS_NM = [400.0 + 35.0 * i for i in range(8)]
 
 
-class SettingsError(ValueError):
-    """A settings file or value that cannot be used; the message names the key and the problem."""
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
-
-
-class SkinOptics(_Strict):
-    """Fixed optical properties of the two-layer skin model (PHYSICS.md §1; DWRR08 §5.1)."""
+class SkinOptics(Strict):
+    """Fixed optical properties of the two-layer skin model (DWRR08 §5, §5.1, Eq. 11–13; chromophore sources: docs/model.md, "Constants and units")."""
 
     epidermis_thickness_mm: float = Field(0.25, gt=0, description="Epidermis thickness (DWRR08 §5.1).")
     n_epidermis: float = Field(1.40, gt=1, description="Refractive index of the epidermis.")
@@ -74,17 +69,18 @@ class SkinOptics(_Strict):
     )
 
 
-class TableSettings(_Strict):
-    """Sum-of-Gaussians fits and σa lookup tables (PHYSICS.md §3; DWRR08 §4.3, §4.5)."""
+class TableSettings(Strict):
+    """Sum-of-Gaussians fits and σa lookup tables (DWRR08 §3 Eq. 4, §4.3, §4.5; d'Eon et al. 2007)."""
 
     n_gaussians: int = Field(
         21,
         ge=2,
         le=40,
         description=(
-            "Gaussians per profile. The paper's 18 (std 0.01 mm · √2^k) extended down by three so that "
-            "the darkest epidermis (σa ≈ 80 /mm at 400 nm) still fits within 2%; Gaussians under half a "
-            "pixel merge into the identity at render time, so the extension costs nothing there."
+            "Gaussians per profile. The paper's 18 (std 0.01 mm · √2^k) extended down by three so that the "
+            "profiles of the darkest epidermis, narrower than the paper's narrowest Gaussian, still fit "
+            "(docs/model.md, \"The Gaussian basis\"); Gaussians under the identity threshold merge into the "
+            "identity at render time, so the extension costs nothing there."
         ),
     )
     gaussian_std_min_mm: float = Field(
@@ -112,19 +108,19 @@ class TableSettings(_Strict):
         return [v0 * 2.0**k for k in range(self.n_gaussians)]
 
 
-class RenderSettings(_Strict):
-    """The heterogeneous renderer (PHYSICS.md §4–5; DWRR08 §4.3)."""
+class RenderSettings(Strict):
+    """The heterogeneous renderer (DWRR08 §4.1–4.3, Eq. 5–9; docs/renderer.md)."""
 
     blur: Literal["pyramid", "fft", "chain"] = Field(
-        "pyramid", description="How Gaussian blur stacks are computed (see model/blur.py; all agree to 0.5%)."
+        "pyramid", description="How Gaussian blur stacks are computed (model/blur.py; their agreement: docs/renderer.md)."
     )
     identity_below_px: float = Field(
         0.25,
         ge=0,
         description=(
             "Gaussians narrower than this (std, pixels) act as the identity. A quarter pixel, not the "
-            "half the paper suggests: merging 0.25–0.5 px Gaussians was measured to shift a window "
-            "edge by 1.7% and a point light's centre pixel by 1%; below 0.25 px it changes nothing."
+            "half the paper suggests: merging 0.25–0.5 px Gaussians visibly moves a window's edge and a "
+            "point light's centre pixel, below 0.25 px nothing does (docs/renderer.md)."
         ),
     )
     pyramid_min_px: float = Field(3.0, gt=0.5, description="Pyramid: go down a level once a blur is twice this wide (pixels).")
@@ -134,8 +130,8 @@ class RenderSettings(_Strict):
         lt=1,
         description=(
             "Inter-scattering terms are added until the rest of the series carries less than this of the light "
-            "(worst pixel). With the closure on, the closed rest leaves under 0.1% of the peak at 2e-2 "
-            "(docs/renderer.md); without it, use 1e-3 or less."
+            "(worst pixel). With the closure on, the closed rest is small at this tolerance (docs/renderer.md); "
+            "without it, use 1e-3 or less."
         ),
     )
     max_series_terms: int = Field(12, ge=1, description="Upper bound on inter-scattering terms (DWRR08 used 5–6).")
@@ -159,13 +155,13 @@ class RenderSettings(_Strict):
         ge=0,
         description=(
             "Skin simulated beyond the maps (occluded by the tape for window light) unless the light names its "
-            "own. DWRR08 uses 1 cm; measured on a 7.5 mm window, 5 mm changes no pixel by 10⁻⁴, 3 mm by 6·10⁻⁴ "
-            "and 2 mm by 3·10⁻³ (docs/renderer.md)."
+            "own. DWRR08 uses 1 cm; 5 mm changes no pixel of a 7.5-mm window by more than 10⁻⁴ of 1 cm's "
+            "(docs/renderer.md)."
         ),
     )
 
 
-class ModelSettings(_Strict):
+class ModelSettings(Strict):
     """Everything that shapes the model's output; saved beside results so they can be re-made."""
 
     optics: SkinOptics = SkinOptics()
@@ -173,7 +169,7 @@ class ModelSettings(_Strict):
     render: RenderSettings = RenderSettings()
     render_wavelengths_nm: list[float] = Field(
         default_factory=lambda: list(PAPER_RENDER_WAVELENGTHS_NM),
-        description="Wavelengths rendered for colour images (DWRR08 §8: 400, 435, …, 645 nm).",
+        description="Wavelengths rendered for colour images (DWRR08 §7: 400, 435, …, 645 nm).",
     )
     illuminant: str = Field("D65", description="CIE illuminant for colour (any name colour-science knows).")
 
@@ -192,32 +188,8 @@ class ModelSettings(_Strict):
         return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
-def read_yaml_mapping(path: str | Path, error: type[Exception], what: str = "") -> dict:
-    """The mapping at the top of a YAML file (loaded safely; empty file: ``{}``). Raises ``error`` naming
-    the file and the problem: unreadable, not YAML, or not a mapping (``what``: "of settings", …)."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise error(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except yaml.YAMLError as exc:
-        raise error(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise error(f"{path}: expected a mapping {what + ' ' if what else ''}at the top level")
-    return data
-
-
-def load_settings(cls, path: str | Path | None, error: type[Exception], name: str, overrides: dict | None = None):
-    """Settings of pydantic class ``cls``: embedded defaults, then a YAML file if given, then ``overrides``.
-    Raises ``error`` naming the file (or ``name``), the key and the problem."""
-    data = dict(read_yaml_mapping(path, error, "of settings")) if path is not None else {}
-    data.update(overrides or {})
-    try:
-        return cls.model_validate(data)
-    except ValidationError as exc:
-        raise error(f"{path if path is not None else name}: {format_validation_error(exc)}") from None
+class SettingsError(BaseSettingsError):
+    """A model settings file or value that cannot be used; the message names the file, the key and the problem."""
 
 
 def load_model_settings(path: str | Path | None = None) -> ModelSettings:
@@ -225,23 +197,4 @@ def load_model_settings(path: str | Path | None = None) -> ModelSettings:
 
     Raises ``SettingsError`` naming the file, the key and the problem.
     """
-    if path is None:
-        return ModelSettings()
-    data = read_yaml_mapping(path, SettingsError, "of settings")
-    try:
-        return ModelSettings.model_validate(data)
-    except ValidationError as exc:
-        raise SettingsError(f"{path}: {format_validation_error(exc)}") from None
-
-
-def format_validation_error(exc: ValidationError) -> str:
-    """One line per problem: ``key.path: message (got value)``."""
-    lines = []
-    for err in exc.errors():
-        key = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        msg = err["msg"]
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        got = err.get("input")
-        lines.append(f"{key}: {msg}" + (f" (got {got!r})" if err["type"] != "extra_forbidden" and not isinstance(got, dict) else ""))
-    return "; ".join(lines)
+    return load_settings(ModelSettings, path, SettingsError, "model settings")

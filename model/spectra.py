@@ -1,4 +1,8 @@
-"""Chromophore spectra and the layers' optical coefficients (PHYSICS.md §1; DWRR08 Eq. 11–13).
+"""Chromophore spectra and the layers' optical coefficients (DWRR08 §5.1, Eq. 11–13).
+
+The constants, their units and their primary sources (Jacques for the melanins and the baseline,
+Prahl for hemoglobin, PhotochemCAD for β-carotene) are tabulated in docs/model.md, "Constants and
+units".
 
 Tabulated spectra (hemoglobin, β-carotene) are package data files naming their sources, read once;
 closed forms (melanins, baseline, scattering) are functions of the settings' constants. Any
@@ -18,6 +22,7 @@ from importlib import resources
 import numpy as np
 import torch
 
+from ..formats.errors import InputError
 from .settings import SkinOptics
 
 __all__ = [
@@ -46,11 +51,11 @@ def check_wavelengths(wavelength_nm: torch.Tensor) -> torch.Tensor:
     """Validate a 1-D tensor of wavelengths in 380–800 nm; return it as float64."""
     w = torch.as_tensor(wavelength_nm, dtype=torch.float64)
     if w.ndim != 1 or w.numel() == 0:
-        raise ValueError(f"wavelengths must be a non-empty 1-D list, got shape {tuple(w.shape)}")
+        raise InputError(f"wavelengths must be a non-empty 1-D list, got shape {tuple(w.shape)}")
     if not bool(torch.isfinite(w).all()):
-        raise ValueError("wavelengths must be finite numbers")
+        raise InputError("wavelengths must be finite numbers")
     if bool((w < MIN_WAVELENGTH_NM).any()) or bool((w > MAX_WAVELENGTH_NM).any()):
-        raise ValueError(
+        raise InputError(
             f"wavelengths must lie within {MIN_WAVELENGTH_NM:g}–{MAX_WAVELENGTH_NM:g} nm, "
             f"got {float(w.min()):g}–{float(w.max()):g} nm"
         )

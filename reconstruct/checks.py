@@ -16,9 +16,14 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..calibration.cube import Cube
+from ..formats.cube import Cube
+from ..formats.errors import InputError
+from ..model import N_PARAMS
 
-__all__ = ["FLAG_BITS", "DataChecks", "check_cube", "flag_value"]
+__all__ = ["FLAG_BITS", "MIN_BANDS", "DataChecks", "check_cube", "flag_value"]
+
+#: Bands a pixel needs: one per parameter and one for the global scale.
+MIN_BANDS = N_PARAMS + 1
 
 #: Bit of each flag in the ``flags`` channel (value = sum of 2**bit).
 FLAG_BITS = {
@@ -49,8 +54,8 @@ class DataChecks:
 
 
 def check_cube(cube: Cube, saturated_reflectance: float, dead_band_reflectance: float) -> DataChecks:
-    """Screen a cube; raises ``ValueError`` when fewer than six bands or no pixel remain (five unknowns
-    per pixel plus the global scale need at least six bands)."""
+    """Screen a cube; raises ``InputError`` (a ``ValueError``) when fewer than ``MIN_BANDS`` bands or no
+    pixel remain."""
     refl = cube.reflectance
     mask = cube.mask.to(torch.bool)
     wl = cube.wavelength_nm.tolist()
@@ -72,10 +77,11 @@ def check_cube(cube: Cube, saturated_reflectance: float, dead_band_reflectance: 
     n_masked = int((~mask).sum())
     if n_masked:
         notes.append(f"{n_masked} pixel(s) outside the cube's mask: parameters follow the nearest visible pixel")
-    if int(bands_used.sum()) < 6:
-        raise ValueError(
-            f"cube has {int(bands_used.sum())} usable band(s) of {len(wl)}; the fit needs at least 6 (five parameters and a scale)"
+    if int(bands_used.sum()) < MIN_BANDS:
+        raise InputError(
+            f"cube has {int(bands_used.sum())} usable band(s) of {len(wl)}; the fit needs at least {MIN_BANDS} "
+            f"({N_PARAMS} parameters and a scale)"
         )
     if not bool(usable.any()):
-        raise ValueError("cube has no usable pixel (all masked or saturated)")
+        raise InputError("cube has no usable pixel (all masked or saturated)")
     return DataChecks(bands_used, usable, saturated, ~mask, notes, excluded)

@@ -4,18 +4,21 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
 
 import torch
 import typer
 
+from ..formats.cube import CUBE_NAME, calibrated_dir
+from ..formats.errors import InputError
 from ..model import PARAMETER_NAMES, SkinModel, load_model_settings
 from ..model.cli import parse_wavelengths
 from .spectra_io import read_spectra_csv
 from .spectrum_fit import fit_spectra
 
-__all__ = ["register"]
+__all__ = ["fit_progress", "print_fit_summary", "register", "resolve_cube_path"]
 
 
 def fit_spectrum(
@@ -38,9 +41,9 @@ def fit_spectrum(
     try:
         lo, hi = (float(v) for v in lo_hi)
     except ValueError:
-        raise ValueError(f"--range {wavelength_range!r}: expected lo:hi in nm, e.g. 400:700") from None
+        raise InputError(f"--range {wavelength_range!r}: expected lo:hi in nm, e.g. 400:700") from None
     if not (380.0 <= lo < hi <= 800.0):
-        raise ValueError(f"--range {wavelength_range!r}: must lie within 380–800 nm with lo < hi")
+        raise InputError(f"--range {wavelength_range!r}: must lie within 380–800 nm with lo < hi")
     data = read_spectra_csv(file).select(lo, hi)
     start = time.perf_counter()
     fit = fit_spectra(
@@ -130,20 +133,18 @@ def _plot_fits(names, wavelength_nm, measured, fitted, rms, path: Path) -> None:
     plt.close(fig)
 
 
-#: Iterations a level's pass usually takes, per method (measured; only the ETA uses them; a level runs
-#: 1 + robust_passes passes: at 256² gn-hom took 9–12 and 4–8).
+#: Iterations a level's pass usually takes, per method (only the ETA uses them; a level runs
+#: 1 + robust_passes passes; fit.json's ``iterations_per_pass`` records what each one took).
 _EXPECTED_ITERATIONS = {"gn-hom": 10, "gn": 20, "adam": 150, "paper-fd": 300}
 
 
 def resolve_cube_path(source: Path) -> Path:
     """A cube file as given; a calibrated folder's ``cube.exr``; or a session folder's cube, which
     ``skinlayers calibrate`` writes beside it (``<SESSION>_calibrated/cube.exr``). Errors say what to do."""
-    from ..calibration.pipeline import default_out_dir  # noqa: PLC0415
-
     if source.is_dir():
-        if (source / "cube.exr").is_file():
-            return source / "cube.exr"
-        cube = default_out_dir(source) / "cube.exr"
+        if (source / CUBE_NAME).is_file():
+            return source / CUBE_NAME
+        cube = calibrated_dir(source) / CUBE_NAME
         if not cube.exists():
             raise FileNotFoundError(
                 f"{source}: no calibrated cube at {cube}; run `skinlayers calibrate {source}` first"
@@ -157,7 +158,7 @@ def resolve_cube_path(source: Path) -> Path:
 def default_reconstruction_dir(source: Path, cube_path: Path) -> Path:
     """``<SESSION>_reconstruction`` beside a session folder (the session is never written to), else
     ``reconstruction/`` beside the cube."""
-    if source.is_dir() and not (source / "cube.exr").is_file():
+    if source.is_dir() and not (source / CUBE_NAME).is_file():
         resolved = source.resolve()
         return resolved.parent / f"{resolved.name}_reconstruction"
     return cube_path.parent / "reconstruction"
@@ -179,30 +180,63 @@ def reconstruct(
     Writes maps.exr (C_m, beta_m, C_he, C_bc, C_hd, residuals, flags, sigma_*), fit.json, report.png and
     fit_settings.yaml. Example: skinlayers reconstruct my-session  (after skinlayers calibrate my-session)
     """
-    from rich.console import Console  # noqa: PLC0415
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn  # noqa: PLC0415
-
-    from ..calibration.cube import read_cube  # noqa: PLC0415
-    from .fit import FitEvent, fit_cube  # noqa: PLC0415
+    from ..formats.cube import read_cube  # noqa: PLC0415
+    from .fit import fit_cube  # noqa: PLC0415
     from .outputs import write_outputs  # noqa: PLC0415
     from .settings import load_fit_settings  # noqa: PLC0415
 
     if device not in ("cpu", "cuda", "auto"):
-        raise ValueError(f"--device {device!r}: expected cpu, cuda or auto")
+        raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
     settings = load_fit_settings(config, method=method, start=start)
     cube_path = resolve_cube_path(source)
     out_dir = out or default_reconstruction_dir(source, cube_path)
     if (out_dir / "fit.json").exists() and not force:
         raise FileExistsError(f"{out_dir}: holds an earlier fit (fit.json); choose another -o or pass --force")
     cube = read_cube(cube_path)
+    with fit_progress(settings, cube.shape[0]) as on_event:
+        fit = fit_cube(cube, settings, device=device, progress=on_event)
+    paths = write_outputs(fit, settings, out_dir, source=str(cube_path))
+    print_fit_summary(fit, settings)
+    for kind, path in paths.items():
+        typer.echo(f"{kind}: {path}")
+
+
+def print_fit_summary(fit, settings) -> None:
+    """The fit in a few lines on stderr: size, scale, residual, iterations, time, notes and flags."""
+    from rich.console import Console  # noqa: PLC0415
+
     console = Console(stderr=True)
+    flags = {k: int(v) for k, v in _flag_counts(fit).items() if v}
+    console.print(
+        f"fit {fit.residual_rms.shape[0]}×{fit.residual_rms.shape[1]} px, {fit.wavelength_nm.numel()} bands, method {settings.method}: "
+        f"scale {fit.scale:.4f}, residual RMS {_visible_rms(fit):.4f}, {sum(level['iterations'] for level in fit.levels)} iterations, "
+        f"{fit.wall_s:.1f} s"
+    )
+    for note in fit.checks.notes:
+        console.print(f"note: {note}")
+    for what, source in (("camera angle", fit.view_angle_source), ("filter widths", fit.band_fwhm_source)):
+        if source.startswith("not in"):
+            console.print(f"note: {what} {source} (set view_angle_deg / band_fwhm_nm in --config if your rig differs)")
+    for name, share in fit.maps_at_bound.items():
+        console.print(f"note: {name} (on nodes) rests at a bound over {share:.0%} of the pixels (the data do not hold it there)")
+    if flags:
+        console.print("flagged pixels: " + ", ".join(f"{k} {v}" for k, v in flags.items()))
+
+
+@contextmanager
+def fit_progress(settings, bands: int):
+    """A progress bar with an ETA over the fit's levels; yields the ``fit_cube`` progress callback."""
+    from rich.console import Console  # noqa: PLC0415
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn  # noqa: PLC0415
+
+    from .fit import FitEvent  # noqa: PLC0415
+
     expected = _EXPECTED_ITERATIONS.get(settings.method, 20) * (1 + settings.robust_passes)
     with Progress(
         TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
-        TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=console, transient=False,
+        TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), console=Console(stderr=True), transient=False,
     ) as bar:
         task = bar.add_task("preparing", total=1.0)
-        done_before: list[float] = [0.0]
 
         def on_event(event: FitEvent) -> None:
             if event.stage == "tables":
@@ -215,8 +249,9 @@ def reconstruct(
             base = float(sum(work[: event.level]))
             if event.stage == "fit":
                 within = min(event.iteration, expected - 1) * event.pixels[event.level]
+                rms = (2 * event.loss / max(event.pixels[event.level] * bands, 1)) ** 0.5
                 bar.update(task, total=total, completed=base + within,
-                           description=f"level {event.level + 1}/{event.levels} it {event.iteration} RMS {(2 * event.loss / max(event.pixels[event.level] * cube.shape[0], 1)) ** 0.5:.4f}")
+                           description=f"level {event.level + 1}/{event.levels} it {event.iteration} RMS {rms:.4f}")
             elif event.stage == "level":
                 bar.update(task, total=total, completed=base + work[event.level])
             elif event.stage == "start":
@@ -224,22 +259,7 @@ def reconstruct(
             elif event.stage == "final":
                 bar.update(task, total=total, completed=total, description="residuals, flags, uncertainties")
 
-        fit = fit_cube(cube, settings, device=device, progress=on_event)
-    paths = write_outputs(fit, settings, out_dir, source=str(cube_path))
-    flags = {k: int(v) for k, v in _flag_counts(fit).items() if v}
-    console.print(
-        f"fit {fit.residual_rms.shape[0]}×{fit.residual_rms.shape[1]} px, {fit.wavelength_nm.numel()} bands, method {settings.method}: "
-        f"scale {fit.scale:.4f}, residual RMS {_visible_rms(fit):.4f}, {sum(level['iterations'] for level in fit.levels)} iterations, "
-        f"{fit.wall_s:.1f} s"
-    )
-    for note in fit.checks.notes:
-        console.print(f"note: {note}")
-    for name, share in fit.maps_at_bound.items():
-        console.print(f"note: {name} (on nodes) rests at a bound over {share:.0%} of the pixels (the data do not hold it there)")
-    if flags:
-        console.print("flagged pixels: " + ", ".join(f"{k} {v}" for k, v in flags.items()))
-    for kind, path in paths.items():
-        typer.echo(f"{kind}: {path}")
+        yield on_event
 
 
 def _flag_counts(fit) -> dict[str, int]:

@@ -3,17 +3,17 @@
 ``paper-fd`` is DWRR08 §6.3 as a runnable baseline: every step renders the patch once and once more
 per parameter with that parameter's map shifted by ``fd_step`` everywhere at once, so each pixel's
 forward difference includes the cross-talk of its shifted neighbours (the paper's "simultaneously
-evaluating all forward differences"); 6 renders a step. The paper gives no step rule; this one is
+evaluating all forward differences"); 1 + N_PARAMS renders a step. The paper gives no step rule; this one is
 generous to it: each parameter's gradient is divided by that parameter's mean squared sensitivity over
-the patch (one number per parameter map, from the same differences: plain descent in x, measured,
-left the residual at 2.7% after 600 steps because the five sensitivities differ by orders of
-magnitude), and the step length grows by 1.2 after every success and halves after a failure ("bold
+the patch (one number per parameter map, from the same differences: plain descent in x stalls far
+above the noise because the sensitivities differ by orders of magnitude; docs/reconstruct.md), and
+the step length grows by 1.2 after every success and halves after a failure ("bold
 driver", Battiti 1989), starting so that the largest change is ``learning_rate``.
 
 ``adam`` is Adam (Kingma & Ba 2015) on the exact gradient of one forward+backward render per step.
 
 Both test convergence over a window of steps (their single steps are too small for the per-step
-test, which stopped the baseline after 6 steps at 12× the noise): relative loss decrease over the last
+test, which stopped the baseline after a few steps far above the noise): relative loss decrease over the last
 ``_WINDOW`` steps below ftol; at most ``_FIRST_ORDER_CAP`` × max_iterations steps (600 by default; the
 paper ran 200–500).
 """
@@ -24,8 +24,8 @@ import time
 
 import torch
 
-from .optimizers import OptimResult, register_method
-from .problem import LevelProblem
+from ..model import N_PARAMS
+from .problem import LevelProblem, OptimResult
 from .unknowns import X_LIMIT
 
 __all__ = ["adam", "paper_forward_differences"]
@@ -41,7 +41,6 @@ def _window_converged(history: list[tuple[float, float]], ftol: float) -> bool:
     return (old - new) / max(old, 1e-300) < ftol
 
 
-@register_method("paper-fd")
 def paper_forward_differences(problem: LevelProblem, x0, log_scale0, settings, progress=None) -> OptimResult:
     """DWRR08 §6.3: gradient descent, gradient by forward differences of whole-map shifts."""
     ev = problem.evaluate(x0, log_scale0)
@@ -51,8 +50,8 @@ def paper_forward_differences(problem: LevelProblem, x0, log_scale0, settings, p
     converged = False
     it = 0
     for it in range(1, _FIRST_ORDER_CAP * settings.max_iterations + 1):
-        grad = torch.empty(problem.n_pixels, 5, dtype=x0.dtype, device=x0.device)
-        for k in range(5):
+        grad = torch.empty(problem.n_pixels, N_PARAMS, dtype=x0.dtype, device=x0.device)
+        for k in range(N_PARAMS):
             shifted = ev.x.clone()
             shifted[k] = (shifted[k] + h).clamp(-X_LIMIT, X_LIMIT)
             moved = problem.evaluate(shifted, ev.log_scale)
@@ -64,7 +63,7 @@ def paper_forward_differences(problem: LevelProblem, x0, log_scale0, settings, p
             eta = settings.learning_rate / max(float(grad.abs().max()), float(grad_scale.abs()), 1e-30)
         accepted = False
         while eta > 1e-30:
-            x_new = ev.x.clone().reshape(5, -1)
+            x_new = ev.x.clone().reshape(N_PARAMS, -1)
             x_new[:, problem.pixels] = (x_new[:, problem.pixels] - eta * grad.T).clamp(-X_LIMIT, X_LIMIT)
             trial = problem.evaluate(x_new.reshape(ev.x.shape), ev.log_scale - eta * grad_scale)
             if trial.loss < ev.loss:
@@ -81,7 +80,6 @@ def paper_forward_differences(problem: LevelProblem, x0, log_scale0, settings, p
     return OptimResult(ev.x, ev.log_scale, ev, it, converged, history)
 
 
-@register_method("adam")
 def adam(problem: LevelProblem, x0, log_scale0, settings, progress=None) -> OptimResult:
     """Adam on the exact gradient; the iterate with the lowest loss is returned."""
     x = x0.detach().clone()
@@ -90,7 +88,7 @@ def adam(problem: LevelProblem, x0, log_scale0, settings, progress=None) -> Opti
     best = ev
     history = [(time.process_time(), ev.loss)]
     beta1, beta2, eps = 0.9, 0.999, 1e-8
-    m = torch.zeros(problem.n_pixels, 6, dtype=x.dtype, device=x.device)
+    m = torch.zeros(problem.n_pixels, N_PARAMS + 1, dtype=x.dtype, device=x.device)  # the maps, then the scale
     v = torch.zeros_like(m)
     converged = False
     it = 0
@@ -98,13 +96,13 @@ def adam(problem: LevelProblem, x0, log_scale0, settings, progress=None) -> Opti
         col = problem.at_pixels(ev.image) * torch.exp(ev.log_scale) * problem.row_weight
         g_scale = (col * ev.residual).sum() if settings.free_scale else torch.zeros((), dtype=x.dtype)
         # per-pixel gradient; the scale's share is spread over the pixels so its moments stay comparable
-        g = torch.cat([ev.grad.T, (g_scale / problem.n_pixels).expand(problem.n_pixels, 1)], dim=1)
+        g = torch.cat([ev.grad, (g_scale / problem.n_pixels).expand(problem.n_pixels, 1)], dim=1)
         m = beta1 * m + (1 - beta1) * g
         v = beta2 * v + (1 - beta2) * g * g
         step = settings.learning_rate * (m / (1 - beta1**it)) / (torch.sqrt(v / (1 - beta2**it)) + eps)
-        flat = ev.x.clone().reshape(5, -1)
-        flat[:, problem.pixels] = (flat[:, problem.pixels] - step[:, :5].T).clamp(-X_LIMIT, X_LIMIT)
-        new_scale = ev.log_scale - (step[:, 5].mean() if settings.free_scale else 0.0)
+        flat = ev.x.clone().reshape(N_PARAMS, -1)
+        flat[:, problem.pixels] = (flat[:, problem.pixels] - step[:, :N_PARAMS].T).clamp(-X_LIMIT, X_LIMIT)
+        new_scale = ev.log_scale - (step[:, N_PARAMS].mean() if settings.free_scale else 0.0)
         ev = problem.evaluate(flat.reshape(x.shape), new_scale, grad=True)
         if ev.loss < best.loss:
             best = ev

@@ -8,7 +8,7 @@ the scale, the fitted image, residuals, per-pixel flags and uncertainties.
 Uncertainty. At the end point the per-pixel covariance of the parameters is the Gauss–Newton sandwich
 Aₚ⁻¹ (Jₚᵀ Σ Jₚ) Aₚ⁻¹ with Jₚ the pixel's Jacobian with respect to its parameters (homogeneous model ×
 light factor × scale, as in ``gauss_newton.py``), Aₚ = JₚᵀJₚ and Σ = diag(σ_λ²) the residual variance
-of each band over all loss pixels (degrees of freedom L − 5 per pixel). Cross-talk is left out of Jₚ:
+of each band over all loss pixels (degrees of freedom L − N_PARAMS per pixel). Cross-talk is left out of Jₚ:
 the neighbours' share of a pixel's signal makes the true per-pixel uncertainty of fine detail larger
 than this, not smaller.
 """
@@ -22,8 +22,9 @@ from typing import Callable
 
 import torch
 
-from ..calibration.cube import Cube
-from ..model import PARAMETER_NAMES
+from ..formats.cube import Cube
+from ..formats.errors import InputError
+from ..model import N_PARAMS, PARAMETER_NAMES
 from ..model.maps import SkinMaps
 from ..model.renderer import SkinRenderer
 from .checks import DataChecks, check_cube, flag_value
@@ -33,12 +34,14 @@ from .problem import LevelProblem, RenderCounter
 from .schur import marginal_variance
 from .settings import FitSettings
 from .start import STARTS
-from .unknowns import bounds, dparams_dx, extend, pyramid, to_params, upsample
+from .unknowns import dparams_dx, extend, near_bound, pyramid, to_params, upsample
 
-__all__ = ["DEFAULT_VIEW_ANGLE_DEG", "FitEvent", "MapFit", "fit_cube", "view_angle_of"]
+__all__ = ["DEFAULT_BAND_FWHM_NM", "DEFAULT_VIEW_ANGLE_DEG", "FitEvent", "MapFit", "band_fwhm_of", "fit_cube", "view_angle_of"]
 
-DEFAULT_VIEW_ANGLE_DEG = 30.0  # DWRR08 §6.1: camera 30° off the flash axis
-DEFAULT_BAND_FWHM_NM = 10.0  # DWRR08 §6.1: 10-nm band-pass filters
+#: Where neither the settings nor the cube's header say: DWRR08 §6.1's camera, 30° off the flash axis,
+#: and its 10-nm band-pass filters.
+DEFAULT_VIEW_ANGLE_DEG = 30.0
+DEFAULT_BAND_FWHM_NM = 10.0
 
 
 @dataclass(frozen=True)
@@ -62,7 +65,8 @@ Progress = Callable[[FitEvent], None]
 class MapFit:
     """The result on the cube's grid. Maps ``(1, H, W)``; ``image`` and ``residual`` ``(L, H, W)``
     (scaled prediction and prediction − measurement, all bands); ``residual_rms`` ``(H, W)`` over the
-    used bands; ``flags`` ``(H, W)`` int bit field (``checks.FLAG_BITS``); ``sigma`` ``(5, H, W)``;
+    used bands; ``flags`` ``(H, W)`` int bit field (``checks.FLAG_BITS``); ``sigma`` ``(N_PARAMS, H, W)``;
+    ``band_fwhm_nm`` ``(L,)`` each band's filter width as fitted, ``band_fwhm_source`` where it came from;
     ``history``: (CPU s, loss, level) after every accepted step of every pass (a robust pass lowers its
     own, weighted loss); ``maps_at_bound``: each map on nodes that rests at a bound somewhere, with the
     share of the loss pixels where it does (such a map flags no pixel: ``at_bound`` is a pixel's own maps)."""
@@ -78,7 +82,8 @@ class MapFit:
     wavelength_nm: torch.Tensor
     view_angle_deg: float
     view_angle_source: str
-    band_fwhm_nm: float
+    band_fwhm_nm: torch.Tensor
+    band_fwhm_source: str
     levels: list[dict] = field(default_factory=list)
     counter: RenderCounter = field(default_factory=RenderCounter)
     cpu_s: float = 0.0
@@ -88,25 +93,23 @@ class MapFit:
 
 
 def view_angle_of(cube: Cube, settings: FitSettings) -> tuple[float, str]:
-    """The camera angle: the settings', else the cube meta's, else DWRR08's 30°; and where it came from."""
+    """The camera angle: the settings', else the cube header's (the rig's), else DWRR08's 30°; and where it came from."""
     if settings.view_angle_deg is not None:
         return float(settings.view_angle_deg), "fit settings"
-    meta = cube.meta or {}
-    for key in ("camera_angle_deg", "view_angle_deg"):
-        if isinstance(meta.get(key), (int, float)):
-            return float(meta[key]), f"cube meta {key}"
-    angle = (meta.get("rig") or {}).get("camera", {}).get("angle_deg") if isinstance(meta.get("rig"), dict) else None
-    if isinstance(angle, (int, float)):
-        return float(angle), "cube meta rig.camera.angle_deg"
-    return DEFAULT_VIEW_ANGLE_DEG, "default (DWRR08: 30°)"
+    if cube.header.camera_angle_deg is not None:
+        return float(cube.header.camera_angle_deg), "cube header"
+    return DEFAULT_VIEW_ANGLE_DEG, f"not in the cube header: DWRR08's {DEFAULT_VIEW_ANGLE_DEG:g}°"
 
 
-def band_fwhm_of(cube: Cube, settings: FitSettings) -> float:
-    """The filters' width: the settings', else the cube meta's ``band_fwhm_nm``, else 10 nm (PHYSICS.md §7)."""
+def band_fwhm_of(cube: Cube, settings: FitSettings) -> tuple[torch.Tensor, str]:
+    """Each band's filter width ``(L,)`` nm: the settings' (one for all), else the cube header's (the
+    rig's, per band), else DWRR08's 10 nm; and where it came from."""
+    bands = len(cube.header.wavelengths_nm)
     if settings.band_fwhm_nm is not None:
-        return float(settings.band_fwhm_nm)
-    value = (cube.meta or {}).get("band_fwhm_nm")
-    return float(value) if isinstance(value, (int, float)) else DEFAULT_BAND_FWHM_NM
+        return torch.full((bands,), float(settings.band_fwhm_nm), dtype=torch.float64), "fit settings"
+    if cube.header.band_fwhm_nm is not None:
+        return torch.tensor(cube.header.band_fwhm_nm, dtype=torch.float64), "cube header"
+    return torch.full((bands,), DEFAULT_BAND_FWHM_NM, dtype=torch.float64), f"not in the cube header: DWRR08's {DEFAULT_BAND_FWHM_NM:g} nm"
 
 
 def _resolve_device(device: str | torch.device | None) -> torch.device:
@@ -114,7 +117,7 @@ def _resolve_device(device: str | torch.device | None) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda: no CUDA device is available here (use cpu or auto)")
+        raise InputError("--device cuda: no CUDA device is available here (use cpu or auto)")
     return dev
 
 
@@ -134,7 +137,7 @@ def fit_cube(
     cpu0, wall0 = time.process_time(), time.perf_counter()
     checks = check_cube(cube, settings.saturated_reflectance, settings.dead_band_reflectance)
     view, view_source = view_angle_of(cube, settings)
-    fwhm = band_fwhm_of(cube, settings)
+    fwhm, fwhm_source = band_fwhm_of(cube, settings)
     renderer = renderer or SkinRenderer(settings.model, cache_dir)
     wl = cube.wavelength_nm.to(torch.float64)
     say = progress or (lambda event: None)
@@ -154,8 +157,8 @@ def fit_cube(
             say(FitEvent("start", i, len(levels), pixels=pixels))
             x = STARTS[settings.start](problem, dtype=dtype, device=dev)
             if not problem.layout.per_pixel:  # nodes from the per-pixel start's interquartile range:
-                # its noisy fits put many values at the start's bounds (measured on a 24² cube: the
-                # first step then accepted, 11 iterations against 15 after three rejected steps)
+                # its noisy fits put many values at the start's bounds, from which the first steps
+                # are rejected (docs/reconstruct.md)
                 x = problem.layout.assemble(x, problem.layout.project(x, clip_quantile=0.25))
             log_scale = torch.zeros((), dtype=dtype, device=dev)
         else:
@@ -178,7 +181,8 @@ def fit_cube(
     say(FitEvent("final", len(levels) - 1, len(levels), pixels=pixels))
     out = _finish(problem, result, x, log_scale, checks, settings, cube.mm_per_pixel)
     return MapFit(
-        **out, checks=checks, wavelength_nm=wl, view_angle_deg=view, view_angle_source=view_source, band_fwhm_nm=fwhm, levels=records,
+        **out, checks=checks, wavelength_nm=wl, view_angle_deg=view, view_angle_source=view_source, band_fwhm_nm=fwhm,
+        band_fwhm_source=fwhm_source, levels=records,
         counter=counter, cpu_s=time.process_time() - cpu0, wall_s=time.perf_counter() - wall0, history=history,
     )
 
@@ -227,7 +231,7 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
 
     jac, col = curvature_and_columns(problem, ev)
     lam = torch.full((problem.n_pixels,), 1e-3, dtype=jac.dtype, device=jac.device)
-    grad = ev.grad.T if ev.grad is not None else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
+    grad = ev.grad if ev.grad is not None else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
     dx = level_step(problem, jac, col, grad, ev.residual, lam, 1e-3, settings.free_scale)[0]
     # uncertainty from the unweighted problem: the robust weights shape the estimate, not the camera's noise
     problem.pixel_weight = None
@@ -239,9 +243,8 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
         sigma_pix = _sigma_shared(problem, jac, col, plain, x, settings.free_scale)
     # not converged: the optimiser stopped at its iteration cap and the step it still proposes moves one
     # of the pixel's own maps by more than half its uncertainty. (After a passed convergence test the
-    # proposed gn-hom step is no measure: it points at the fixed point of the approximate Jacobian, and
-    # measured at 256² with maps on nodes it exceeded half of C_m's σ at 73% of the pixels while no
-    # step lowered the loss and the errors did not change from ftol 1e-3 to 1e-4.)
+    # proposed gn-hom step is no measure: it points at the fixed point of the approximate Jacobian, not
+    # at the optimum, and stays large where no step lowers the loss: docs/reconstruct.md.)
     remaining = (problem.at_pixels(dparams_dx(x)) * dx).abs()
     fine = problem.layout.fine
     moving_pix = (remaining[:, fine] > 0.5 * sigma_pix.to(remaining.dtype)[:, fine]).any(1) & (not result.converged)
@@ -250,9 +253,7 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     flags = torch.zeros(h * w, dtype=torch.int32, device=x.device)
     flags[~problem.mask.reshape(-1)] |= flag_value("masked")
     flags[checks.saturated.reshape(-1).to(x.device)] |= flag_value("saturated")
-    lo, hi = bounds(p.dtype, p.device)
-    margin = settings.at_bound_fraction * (hi - lo)
-    bound_hit = (p <= lo + margin) | (p >= hi - margin)  # (5, H, W)
+    bound_hit = near_bound(p, settings.at_bound_fraction)  # (N_PARAMS, H, W)
     # a pixel's own maps at a bound flag it; a map on nodes at a bound is the whole region's, reported once
     at_bound = bound_hit[problem.layout.fine].any(0).reshape(-1)
     nodes_at_bound = {PARAMETER_NAMES[k]: float(bound_hit[k][problem.mask].double().mean()) for k in problem.layout.coarse
@@ -267,16 +268,16 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     flags[high] |= flag_value("high_residual")
     if not bool(checks.bands_used.all()):
         flags |= flag_value("band_excluded")
-    sigma = torch.full((5, h * w), float("nan"), dtype=x.dtype, device=x.device)
+    sigma = torch.full((N_PARAMS, h * w), float("nan"), dtype=x.dtype, device=x.device)
     sigma[:, problem.pixels] = sigma_pix.T.to(x.dtype)
     return {
         "maps": maps, "scale": float(scale), "image": image, "residual": residual, "residual_rms": residual_rms,
-        "flags": flags.reshape(h, w), "sigma": sigma.reshape(5, h, w), "maps_at_bound": nodes_at_bound,
+        "flags": flags.reshape(h, w), "sigma": sigma.reshape(N_PARAMS, h, w), "maps_at_bound": nodes_at_bound,
     }
 
 
 def _sigma_shared(problem: LevelProblem, jac, col, residual, x, free_scale: bool) -> torch.Tensor:
-    """Per-pixel standard deviation of each parameter ``(N, 5)`` when maps share nodes: the inverse
+    """Per-pixel standard deviation of each parameter ``(N, N_PARAMS)`` when maps share nodes: the inverse
     Fisher information of the whole fit (``schur.marginal_variance``), each band's noise σ from the
     residual, mapped from x to the parameter at the pixel."""
     used = problem.band_weight > 0
@@ -290,16 +291,16 @@ def _sigma_shared(problem: LevelProblem, jac, col, residual, x, free_scale: bool
 
 
 def _sigma(problem: LevelProblem, jac: torch.Tensor, residual: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """Per-pixel standard deviation of each parameter ``(N, 5)`` (sandwich covariance, float64)."""
+    """Per-pixel standard deviation of each parameter ``(N, N_PARAMS)`` (sandwich covariance, float64)."""
     used = problem.band_weight > 0
     n_used = int(used.sum())
-    dof = max(n_used - 5, 1) / n_used
+    dof = max(n_used - N_PARAMS, 1) / n_used
     var_band = (residual.double() ** 2).mean(0) / dof  # (L,)
-    dpdx = problem.at_pixels(dparams_dx(x)).double()  # (N, 5)
+    dpdx = problem.at_pixels(dparams_dx(x)).double()  # (N, N_PARAMS)
     jp = jac.double() / dpdx.clamp_min(1e-300)[:, None, :]
     jp = jp[:, used]
     a = jp.transpose(1, 2) @ jp
-    ridge = 1e-12 * torch.diagonal(a, dim1=1, dim2=2).amax(1)[:, None, None] * torch.eye(5, dtype=a.dtype, device=a.device)
+    ridge = 1e-12 * torch.diagonal(a, dim1=1, dim2=2).amax(1)[:, None, None] * torch.eye(N_PARAMS, dtype=a.dtype, device=a.device)
     a_inv = torch.linalg.pinv(a + ridge, hermitian=True)
     meat = jp.transpose(1, 2) @ (var_band[used][None, :, None] * jp)
     cov = a_inv @ meat @ a_inv

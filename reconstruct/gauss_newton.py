@@ -1,26 +1,26 @@
-"""Gauss–Newton / Levenberg–Marquardt with per-pixel 5×5 normal equations and one global scale.
+"""Gauss–Newton / Levenberg–Marquardt with per-pixel N_PARAMS × N_PARAMS normal equations and one global scale.
 
-Curvature. Each pixel's 5×5 block is J̃ᵢᵀJ̃ᵢ with J̃ᵢ = s · fᵢ ⊙ J_h(xᵢ): the Jacobian of the pixel's
+Curvature. Each pixel's block is J̃ᵢᵀJ̃ᵢ with J̃ᵢ = s · fᵢ ⊙ J_h(xᵢ): the Jacobian of the pixel's
 *homogeneous* model (``LevelProblem.homogeneous_jacobian``, closed form, batched), scaled per band by
 the light factor fᵢ = (heterogeneous render)/(homogeneous model) that the window's edges and the
 neighbours impose, times the scale s. The scale's column is the prediction itself (∂(s·R)/∂log s =
 s·R, exact); it couples every pixel and is eliminated by the Schur complement, so a step costs N
-batched 5×5 solves and two reductions.
+batched small solves and two reductions.
 
 Gradient. ``gn`` takes the exact Jᵀr from one forward+backward pass of the heterogeneous renderer: a
 preconditioned step whose fixed point is the heterogeneous optimum. ``gn-hom`` uses J̃ᵀr, needing no
 backward pass: it is Gauss–Newton with an approximate Jacobian (the neighbours' share of a pixel's
 sensitivity left out), whose fixed point satisfies J̃ᵀr = 0 instead of Jᵀr = 0 — the same point when
-the model fits the data (measured: from noise-free renders of a heterogeneous scene by the fit's own
-renderer it returns every parameter within 0.5%). With noise it is not the least-squares optimum, but
-measured on 24² and 32² cubes it reaches a lower loss than ``gn`` and ``adam`` did in 3–50× their
-time, with smaller parameter errors (``tests/bench/test_bench_reconstruct.py``). The exact gradient
+the model fits the data (``tests/reconstruct/test_fit_recovery.py`` fits noise-free renders of a
+heterogeneous scene). With noise it is not the least-squares optimum, but it reaches a lower loss than
+``gn`` and ``adam`` in a fraction of their time, with smaller parameter errors (the optimisers side by
+side: ``tests/bench/test_bench_reconstruct.py``, figures in the README). The exact gradient
 preconditioned by the homogeneous curvature converges slowly: detail finer than the light's spread
 reaches the gradient through J's neighbours' share twice (Jᵀ J), the curvature not at all.
 
-Damping and acceptance (Marquardt 1963; Nielsen's gain ratio, Madsen et al. 2004 §3.2): the damped
-system (J̃ᵀJ̃ + λᵢ D) δ = −g with D the diagonal; a step is kept when the true loss (a full render)
-falls; each pixel's λ follows its own gain ratio (actual over predicted decrease of its residual).
+Damping and acceptance (``least_squares``: the damped step and the damping rule every fit here uses):
+the damped system (J̃ᵀJ̃ + λᵢ D) δ = −g with D the diagonal; a step is kept when the true loss (a full
+render) falls; each pixel's λ follows its own gain ratio (actual over predicted decrease of its residual).
 """
 
 from __future__ import annotations
@@ -29,24 +29,23 @@ import time
 
 import torch
 
-from .optimizers import OptimResult, register_method
-from .problem import Evaluation, LevelProblem
-from .schur import block_factor, block_solve, solve_split_step
+from ..model import N_PARAMS
+from .least_squares import LAMBDA0, LAMBDA_MAX, LAMBDA_MIN, block_factor, block_solve, next_damping, predicted_decrease
+from .problem import Evaluation, LevelProblem, OptimResult
+from .schur import solve_split_step
 from .unknowns import X_LIMIT
 
-__all__ = ["curvature_and_columns", "gauss_newton", "level_step", "solve_step"]
+__all__ = ["curvature_and_columns", "gauss_newton", "gn_exact", "gn_homogeneous", "level_step", "solve_step"]
 
 _MAX_STEP = 3.0  # largest change of any x in one step (a factor e³ in a small concentration)
-_LAMBDA0 = 1e-3
-_LAMBDA_MIN = 1e-7
+_REJECTIONS = 5  # rejected steps in a row that end a pass: no damping lowers the loss
 _FIRST_REJECTIONS = 12
 
 
 def curvature_and_columns(problem: LevelProblem, ev: Evaluation) -> tuple[torch.Tensor, torch.Tensor]:
-    """J̃ ``(N, L, 5)`` (homogeneous Jacobian × light factor × scale, unused bands zeroed) and the
+    """J̃ ``(N, L, N_PARAMS)`` (homogeneous Jacobian × light factor × scale, unused bands zeroed) and the
     scale column c ``(N, L)`` = the scaled prediction at the loss pixels."""
-    x_pix = problem.at_pixels(ev.x).T  # (5, N)
-    hom, jac = problem.homogeneous_jacobian(x_pix)
+    hom, jac = problem.homogeneous_jacobian(problem.at_pixels(ev.x))
     het = problem.at_pixels(ev.image)  # (N, L)
     scale = torch.exp(ev.log_scale)
     factor = (het / hom.clamp_min(1e-12)).clamp(0.0, 2.0) * scale * problem.row_weight
@@ -57,13 +56,10 @@ def solve_step(
     jac: torch.Tensor, col: torch.Tensor, grad: torch.Tensor, grad_scale: torch.Tensor, lam: torch.Tensor,
     lam_scale: float, free_scale: bool,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Damped Gauss–Newton step: ``δx`` ``(N, 5)``, ``δ log s`` (0-d), and ``A = J̃ᵀJ̃`` ``(N, 5, 5)``.
+    """Damped Gauss–Newton step: ``δx`` ``(N, N_PARAMS)``, ``δ log s`` (0-d), and ``A = J̃ᵀJ̃`` ``(N, N_PARAMS, N_PARAMS)``.
 
-    ``grad`` ``(N, 5)`` is ∂loss/∂x, ``grad_scale`` ∂loss/∂log s; the scale enters by the Schur
-    complement of the per-pixel blocks. Each block is solved in float64 after Jacobi scaling (unit
-    diagonal), so the step is invariant to the scale of each unknown — a parameter near a bound, where
-    the logistic map is flat, moves as freely as one in the middle — and Marquardt's damping λ·diag(A)
-    becomes λ·I. An unknown the data do not see at all (zero column) does not move."""
+    ``grad`` ``(N, N_PARAMS)`` is ∂loss/∂x, ``grad_scale`` ∂loss/∂log s; the scale enters by the Schur
+    complement of the per-pixel blocks, each solved as ``least_squares.block_factor`` solves every block."""
     dtype = grad.dtype
     j = jac.double()
     a = j.transpose(1, 2) @ j
@@ -71,7 +67,7 @@ def solve_step(
     a_inv_g = block_solve(factor, grad.double()[..., None])[..., 0]
     if not free_scale:
         return (-a_inv_g).to(dtype), torch.zeros((), dtype=dtype, device=grad.device), a.to(dtype)
-    b = (j.transpose(1, 2) @ col.double()[..., None])[..., 0]  # (N, 5)
+    b = (j.transpose(1, 2) @ col.double()[..., None])[..., 0]  # (N, N_PARAMS)
     a_inv_b = block_solve(factor, b[..., None])[..., 0]
     c = (col.double() ** 2).sum()
     schur = c * (1.0 + lam_scale) - (b * a_inv_b).sum()
@@ -82,7 +78,7 @@ def solve_step(
 def _apply(problem: LevelProblem, x: torch.Tensor, dx: torch.Tensor, z: torch.Tensor, dz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The unknowns after a step: fine maps move at the loss pixels, coarse maps follow their nodes."""
     out = x.clone()
-    flat = out.reshape(5, -1)
+    flat = out.reshape(N_PARAMS, -1)
     fine = problem.layout.fine
     rows = torch.tensor(fine, device=x.device)
     moved = (flat[rows][:, problem.pixels] + dx[:, fine].T).clamp(-X_LIMIT, X_LIMIT)
@@ -94,7 +90,7 @@ def _apply(problem: LevelProblem, x: torch.Tensor, dx: torch.Tensor, z: torch.Te
 
 
 def level_step(problem: LevelProblem, jac, col, grad, residual, lam, lam_scale, free_scale):
-    """(dx ``(N, 5)``, dz, d log s, shared decrement) of the damped system: per-pixel 5×5 blocks, or
+    """(dx ``(N, N_PARAMS)``, dz, d log s, shared decrement) of the damped system: per-pixel blocks, or
     with shared nodes."""
     if problem.layout.per_pixel:
         dx, ds, _ = solve_step(jac, col, grad, (col * residual).sum(), lam, lam_scale, free_scale)
@@ -136,8 +132,8 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
         x0 = problem.layout.assemble(x0, z)
     ev = problem.evaluate(x0, log_scale0, grad=exact)
     n = problem.n_pixels
-    lam = torch.full((n,), _LAMBDA0, dtype=x0.dtype, device=x0.device)
-    lam_scale = _LAMBDA0
+    lam = torch.full((n,), LAMBDA0, dtype=x0.dtype, device=x0.device)
+    lam_scale = LAMBDA0
     history = [(time.process_time(), ev.loss)]
     accel = _Anderson(settings.anderson_memory) if settings.anderson_memory > 0 and problem.layout.per_pixel else None
     rejections = 0
@@ -149,7 +145,7 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
     for it in range(1, settings.max_iterations + 1):
         if jac is None:
             jac, col = curvature_and_columns(problem, ev)
-        grad = ev.grad.T if exact else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
+        grad = ev.grad if exact else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
         dx, dz, ds, decrement = level_step(problem, jac, col, grad, ev.residual, lam, lam_scale, settings.free_scale)
         dx, dz = dx.clamp(-_MAX_STEP, _MAX_STEP), dz.clamp(-_MAX_STEP, _MAX_STEP)
         if not problem.layout.per_pixel:  # the coarse maps' change where the clamped nodes put it
@@ -159,19 +155,17 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
         if accelerated:
             point = torch.cat([problem.at_pixels(ev.x).reshape(-1), ev.log_scale.reshape(1)])
             point_next = accel.next_point(point, torch.cat([dx.reshape(-1), ds.reshape(1)]))
-            dx = (point_next[:-1] - point[:-1]).reshape(n, 5).clamp(-_MAX_STEP, _MAX_STEP)
+            dx = (point_next[:-1] - point[:-1]).reshape(n, N_PARAMS).clamp(-_MAX_STEP, _MAX_STEP)
             ds = point_next[-1] - point[-1]
         x_trial, z_trial = _apply(problem, ev.x, dx, z, dz)
         trial = problem.evaluate(x_trial, ev.log_scale + ds, grad=exact)
         before = (ev.residual**2).sum(1)
         after = (trial.residual**2).sum(1)
-        v = jac @ dx[..., None]
-        v = v[..., 0] + col * ds
-        predicted = -(2.0 * ((dx * grad).sum(1) + ds * (col * ev.residual).sum(1)) + (v * v).sum(1))
+        predicted = predicted_decrease(jac, dx, grad, col, ds, (col * ev.residual).sum(1))
         if trial.loss < ev.loss:
             gain = (before - after) / predicted.clamp_min(1e-30)
-            lam = torch.where(gain > 0.75, lam / 3.0, torch.where(gain < 0.25, lam * 2.0, lam)).clamp(_LAMBDA_MIN, 1e7)
-            lam_scale = max(lam_scale / 3.0, 1e-7)
+            lam = next_damping(lam, True, gain, after > before)
+            lam_scale = max(lam_scale / 3.0, LAMBDA_MIN)
             relative = (ev.loss - trial.loss) / max(ev.loss, 1e-300)
             ev, z, jac, rejections = trial, z_trial, None, 0
             history.append((time.process_time(), ev.loss))
@@ -184,15 +178,14 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
             if accelerated:  # the extrapolation failed: forget it and take the plain step next
                 accel.reset()
             else:
-                worse = after > before
-                lam = torch.where(worse, lam * 4.0, lam * 2.0).clamp(_LAMBDA_MIN, 1e7)
-                lam_scale = min(lam_scale * 4.0, 1e7)
+                lam = next_damping(lam, False, torch.zeros_like(lam), after > before)
+                lam_scale = min(lam_scale * 4.0, LAMBDA_MAX)
             rejections += 1
             if progress is not None:
                 progress(it, ev.loss)
             # before any step is kept the start may be far (its shared nodes projected from noisy per-pixel
             # fits): let the damping grow further before giving up
-            if rejections >= (5 if len(history) > 1 else _FIRST_REJECTIONS) or float(step.max()) < settings.xtol:
+            if rejections >= (_REJECTIONS if len(history) > 1 else _FIRST_REJECTIONS) or float(step.max()) < settings.xtol:
                 converged = True  # no step of any damping lowers the loss: a (local) optimum of this model
                 break
     if jac is None:
@@ -202,11 +195,9 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
     return OptimResult(ev.x, ev.log_scale, ev, it, converged, history, step, jac.transpose(1, 2) @ jac, shared)
 
 
-@register_method("gn")
 def gn_exact(problem, x0, log_scale0, settings, progress=None) -> OptimResult:
     return gauss_newton(problem, x0, log_scale0, settings, progress, exact=True)
 
 
-@register_method("gn-hom")
 def gn_homogeneous(problem, x0, log_scale0, settings, progress=None) -> OptimResult:
     return gauss_newton(problem, x0, log_scale0, settings, progress, exact=False)

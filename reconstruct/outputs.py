@@ -15,7 +15,8 @@ from pathlib import Path
 import torch
 import yaml
 
-from ..acquire.manifest import atomic_write
+from ..formats.files import atomic_write
+from ..formats.version import software_version
 from ..model import PARAMETER_NAMES
 from ..model.maps_io import write_maps
 from .checks import FLAG_BITS
@@ -24,15 +25,6 @@ from .settings import FitSettings
 from .stats import correlations, pca_explained, residual_stats, trimmed_stats
 
 __all__ = ["fit_summary", "write_outputs"]
-
-
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version  # noqa: PLC0415
-
-    try:
-        return version("skinlayers")
-    except PackageNotFoundError:
-        return "0+unknown"
 
 
 def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
@@ -49,14 +41,15 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
         entry["sigma_median"] = float(sigma[i].median())
         per_param[n] = entry
     return {
-        "software_version": _version(),
+        "software_version": software_version(),
         "input": source,
         "shape": list(fit.residual_rms.shape),
         "wavelengths_nm": wl,
         "mm_per_pixel": fit.maps.mm_per_pixel,
         "view_angle_deg": fit.view_angle_deg,
         "view_angle_source": fit.view_angle_source,
-        "band_fwhm_nm": fit.band_fwhm_nm,
+        "band_fwhm_nm": [float(w) for w in fit.band_fwhm_nm.tolist()],
+        "band_fwhm_source": fit.band_fwhm_source,
         "method": settings.method,
         "start": settings.start,
         "scale": fit.scale,
@@ -94,7 +87,7 @@ def write_outputs(fit: MapFit, settings: FitSettings, out_dir: str | Path, sourc
     maps_path = write_maps(
         out / "maps.exr", fit.maps.to(device="cpu"), {k: v.detach().cpu() for k, v in extra.items()},
         {"wavelengths_nm": [float(w) for w in fit.wavelength_nm], "scale": float(fit.scale), "method": settings.method,
-         "software_version": _version(), "flag_bits": json.dumps(FLAG_BITS)},
+         "software_version": software_version(), "flag_bits": json.dumps(FLAG_BITS)},
     )
     settings_path = out / "fit_settings.yaml"
     settings_path.write_text(

@@ -6,9 +6,10 @@ cube's wavelengths, seen at the camera's angle, under gel, lit along the normal,
 radiometric scale, and returns the residual at the pixels in the loss. With ``grad=True`` it also
 returns the exact gradient of ½‖r‖² by one backward pass of the heterogeneous renderer.
 
-Band-pass. Each band is a filter of ``band_fwhm_nm`` (Gaussian), not a line: where the skin's spectrum
+Band-pass. Each band is a filter of its own ``band_fwhm_nm`` (Gaussian; the cube's header says how wide),
+not a line: where the skin's spectrum
 curves within it (hemoglobin's Q bands at 542 and 577 nm) the band's mean differs from the centre's
-value by up to half a percent, which biased dermal blood by 7% in the tests when left out. The
+value enough to bias dermal blood when left out (docs/reconstruct.md, "Settings"). The
 renderer draws the centre wavelength; each pixel's value is then multiplied by its homogeneous
 model's band mean over its centre value, c = Σᵢ wᵢ R_h(λᵢ)/R_h(λ_c) (3-point Gauss–Hermite
 quadrature of the Gaussian, exact for spectra polynomial to degree 5 within the band; the exact
@@ -17,13 +18,14 @@ is far below the render's.
 
 ``homogeneous_jacobian`` is each pixel's *homogeneous* model — the renderer's uniform-light limit,
 R_d(p) times the exit factor (``model/radiometry.py``), from the renderer's own tables — and its
-Jacobian with respect to the unknowns, by forward-mode autodiff, batched over pixels: the cheap 5×5
-curvature of the Gauss–Newton methods (``optimizers.py``).
+Jacobian with respect to the unknowns, by forward-mode autodiff (``least_squares.forward_jacobian``),
+batched over pixels: the cheap per-pixel curvature of the Gauss–Newton methods (``optimizers.py``).
 
 ``layout`` (``grids.MapLayout``) says which maps the fit takes per pixel and which on coarser nodes
 (``map_cell_mm``); the render always takes all five maps per pixel.
 
-Shapes: unknowns ``(5, H, W)``; residuals ``(N, L)`` over the N pixels in the loss.
+Shapes: unknowns ``(N_PARAMS, H, W)`` (maps, image layout); per-pixel data ``(N, ·)`` over the N pixels
+in the loss: residuals ``(N, L)``, gradients ``(N, N_PARAMS)``, Jacobians ``(N, L, N_PARAMS)``.
 """
 
 from __future__ import annotations
@@ -33,7 +35,6 @@ import time
 from dataclasses import dataclass, field
 
 import torch
-import torch.autograd.forward_ad as fwAD
 
 from ..model import SkinParams
 from ..model.illumination import Light
@@ -41,9 +42,10 @@ from ..model.maps import SkinMaps
 from ..model.radiometry import exit_factor
 from ..model.renderer import SkinRenderer
 from .grids import MapLayout
-from .unknowns import Level, extend, extension_index, params_of, to_params
+from .least_squares import forward_jacobian
+from .unknowns import Level, extend, extension_index, params_of_rows, to_params
 
-__all__ = ["Evaluation", "LevelProblem", "RenderCounter"]
+__all__ = ["Evaluation", "LevelProblem", "OptimResult", "RenderCounter"]
 
 
 @dataclass
@@ -61,9 +63,9 @@ class RenderCounter:
 
 @dataclass
 class Evaluation:
-    """The objective at ``x`` ``(5, H, W)`` and ``log_scale`` (0-d): ``image`` ``(L, H, W)`` unscaled
+    """The objective at ``x`` ``(N_PARAMS, H, W)`` and ``log_scale`` (0-d): ``image`` ``(L, H, W)`` unscaled
     render, ``residual`` ``(N, L)`` = scale·image − target at the loss pixels and used bands (0 at
-    unused bands), ``loss`` = ½‖residual‖², ``grad`` ``(5, N)`` exact ∂loss/∂x where asked for."""
+    unused bands), ``loss`` = ½‖residual‖², ``grad`` ``(N, N_PARAMS)`` exact ∂loss/∂x where asked for."""
 
     x: torch.Tensor
     log_scale: torch.Tensor
@@ -72,6 +74,27 @@ class Evaluation:
     loss: float
     grad: torch.Tensor | None = None
     cache: dict = field(default_factory=dict, repr=False)
+
+
+@dataclass
+class OptimResult:
+    """What every optimiser returns (``optimizers.METHODS``): ``x`` ``(N_PARAMS, H, W)``; ``log_scale``
+    0-d; ``evaluation`` at the end point; ``iterations``; ``converged`` (the test, not the cap, stopped
+    it); ``history``: (CPU s, loss) after each accepted step; ``pixel_step`` ``(N,)``: size of the last
+    proposed step per loss pixel (∞-norm in x), NaN where the method has none; ``curvature``
+    ``(N, N_PARAMS, N_PARAMS)`` Gauss–Newton JᵀJ in x at the end (if any); ``shared_decrement``: with
+    maps on nodes, the χ² decrease the last step predicted from the nodes (about Σ (move/σ)² over them,
+    σ² from the residual; 0 without)."""
+
+    x: torch.Tensor
+    log_scale: torch.Tensor
+    evaluation: Evaluation
+    iterations: int
+    converged: bool
+    history: list[tuple[float, float]] = field(default_factory=list)
+    pixel_step: torch.Tensor | None = None
+    curvature: torch.Tensor | None = None
+    shared_decrement: float = 0.0
 
 
 class LevelProblem:
@@ -86,7 +109,7 @@ class LevelProblem:
         *,
         view_angle_deg: float,
         border_mm: float,
-        band_fwhm_nm: float = 0.0,
+        band_fwhm_nm: torch.Tensor | float = 0.0,
         map_cell_mm: dict[str, float] | None = None,
         counter: RenderCounter | None = None,
     ) -> None:
@@ -115,10 +138,11 @@ class LevelProblem:
             renderer.settings.optics.n_epidermis, renderer.settings.optics.n_above, math.cos(math.radians(view_angle_deg))
         )
         self.band_nodes_nm = None
-        if band_fwhm_nm > 0:
-            sigma = band_fwhm_nm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-            offsets = torch.tensor([0.0, -math.sqrt(3.0) * sigma, math.sqrt(3.0) * sigma], dtype=torch.float64)
-            self.band_nodes_nm = (self.wavelength_nm[:, None] + offsets[None, :]).reshape(-1)
+        fwhm = torch.as_tensor(band_fwhm_nm, dtype=torch.float64).expand(self.wavelength_nm.shape)
+        if bool((fwhm > 0).any()):  # a band of width 0 is a line: its three nodes coincide
+            sigma = fwhm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+            offsets = torch.stack([torch.zeros_like(sigma), -math.sqrt(3.0) * sigma, math.sqrt(3.0) * sigma], dim=1)  # (L, 3)
+            self.band_nodes_nm = (self.wavelength_nm[:, None] + offsets).reshape(-1)
             self.band_weights = torch.tensor([2.0 / 3.0, 1.0 / 6.0, 1.0 / 6.0], dtype=torch.float64)
 
     @property
@@ -138,7 +162,7 @@ class LevelProblem:
         return maps.reshape(maps.shape[0], -1)[:, self.pixels].T
 
     def render(self, x: torch.Tensor) -> torch.Tensor:
-        """Unscaled band reflectance factor ``(L, H, W)`` of unknowns ``(5, H, W)`` (differentiable)."""
+        """Unscaled band reflectance factor ``(L, H, W)`` of unknowns ``(N_PARAMS, H, W)`` (differentiable)."""
         p = to_params(extend(x, self.index))
         maps = SkinMaps(*(v[None] for v in p.unbind(0)), mm_per_pixel=self.level.mm_per_pixel)
         out = self.renderer.render(
@@ -168,7 +192,7 @@ class LevelProblem:
                 residual = self._residual(image, log_scale)
                 loss = 0.5 * (residual**2).sum()
                 (g,) = torch.autograd.grad(loss, xg)
-            gradient = self.at_pixels(g).T.contiguous()
+            gradient = self.at_pixels(g).contiguous()
             self.counter.backward += 1
         else:
             with torch.no_grad():
@@ -186,15 +210,10 @@ class LevelProblem:
         return (pred - self.target) * self.row_weight
 
     def homogeneous_jacobian(self, x_pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Homogeneous reflectance factor ``(N, L)`` of each pixel's parameters ``x_pixels`` ``(5, N)``
-        and its Jacobian ``(N, L, 5)`` with respect to x (forward mode, one batched pass)."""
+        """Homogeneous reflectance factor ``(N, L)`` of each pixel's unknowns ``x_pixels`` ``(N, N_PARAMS)``
+        and its Jacobian ``(N, L, N_PARAMS)`` with respect to x (forward mode, one batched pass)."""
         model = self.renderer.model
-        n = x_pixels.shape[1]
-        xs = x_pixels.detach().repeat(1, 5)  # (5, 5N): tangent k on copy k
-        tangents = torch.eye(5, dtype=xs.dtype, device=xs.device).repeat_interleave(n, dim=1)
-        with fwAD.dual_level():
-            out = model.diffuse_reflectance(params_of(fwAD.make_dual(xs, tangents)), self.wavelength_nm, method="tables")
-            value, tangent = fwAD.unpack_dual(out)
-        value = value[:n] * self.exit
-        jac = (tangent * self.exit).reshape(5, n, -1).permute(1, 2, 0)
-        return value.to(x_pixels.dtype), jac.to(x_pixels.dtype)
+        value, jac = forward_jacobian(
+            lambda xv: model.diffuse_reflectance(params_of_rows(xv), self.wavelength_nm, method="tables"), x_pixels.detach()
+        )
+        return (value * self.exit).to(x_pixels.dtype), (jac * self.exit).to(x_pixels.dtype)

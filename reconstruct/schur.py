@@ -11,8 +11,8 @@ coarse map through G = [J_c[:, k]·w_kj …, s·R] ``(L, m)`` (bilinear weights 
 and with X_p = A_p⁻¹B_p, y_p = A_p⁻¹g_f the reduced system over g is
 S = Σ_p (C_p − B_pᵀX_p) (scattered onto the nodes each pixel touches), right side Σ_p (g_g − B_pᵀy_p);
 then δf_p = −(y_p + X_p δg_p). A step costs N batched n_f×n_f solves and one dense solve of the
-nodes (a few hundred to a few thousand). Damping (``block_factor``, shared with
-``gauss_newton.solve_step``): Jacobi-scaled blocks, λ_p per pixel on the fine block, one λ on the shared block; an unknown no pixel sees stays.
+nodes (a few hundred to a few thousand). Damping (``least_squares.block_factor``, as every fit here):
+Jacobi-scaled blocks, λ_p per pixel on the fine block, one λ on the shared block; an unknown no pixel sees stays.
 
 The same elimination with no damping on whitened Jacobians gives the marginal covariance of every
 pixel's parameters (``marginal_variance``): Cov(g) = S⁻¹, Cov(f_p) = A_p⁻¹ + X_p Cov(g)_p X_pᵀ.
@@ -22,39 +22,11 @@ from __future__ import annotations
 
 import torch
 
+from ..model import N_PARAMS
 from .grids import MapLayout
+from .least_squares import block_factor, block_solve
 
-__all__ = ["block_factor", "block_solve", "marginal_variance", "solve_split_step"]
-
-
-def block_factor(a: torch.Tensor, lam: torch.Tensor | float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Cholesky factor of the Jacobi-scaled, damped blocks ``a`` ``(N, n, n)``: (factor, scale s, seen).
-
-    Jacobi scaling (unit diagonal) makes a step invariant to the scale of each unknown — a parameter
-    near a bound, where the logistic map is flat, moves as freely as one in the middle — and turns
-    Marquardt's damping λ·diag(A) into λ·I. An unknown no row sees (zero column) gets an identity row
-    and does not move."""
-    n = a.shape[-1]
-    diag = torch.diagonal(a, dim1=-2, dim2=-1)
-    seen = diag > 1e-24 * diag.amax(dim=-1, keepdim=True).clamp_min(1e-300)
-    s = torch.where(seen, torch.sqrt(diag), torch.ones_like(diag))
-    scaled = a / (s[..., :, None] * s[..., None, :])
-    scaled = torch.where(seen[..., :, None] & seen[..., None, :], scaled, torch.zeros_like(scaled))
-    eye = torch.eye(n, dtype=a.dtype, device=a.device)
-    lam = torch.as_tensor(lam, dtype=a.dtype, device=a.device)
-    damped = scaled + eye * (lam.reshape(lam.shape + (1, 1)) + 1e-9) + torch.diag_embed((~seen).to(a.dtype))
-    chol, info = torch.linalg.cholesky_ex(damped)
-    if bool(info.any()):  # numerically indefinite: fall back to the damped diagonal
-        bad = info > 0
-        chol[bad] = eye * torch.sqrt(1.0 + lam.expand(info.shape)[bad].reshape(-1, 1, 1))
-    return chol, s, seen
-
-
-def block_solve(factor, rhs: torch.Tensor) -> torch.Tensor:
-    """A⁻¹ rhs for rhs ``(N, n, k)`` with ``factor`` from ``block_factor`` (unseen unknowns: 0)."""
-    chol, s, seen = factor
-    mask = seen.to(rhs.dtype)[..., None]
-    return torch.cholesky_solve(rhs / s[..., None] * mask, chol) / s[..., None] * mask
+__all__ = ["marginal_variance", "solve_split_step"]
 
 
 def _local_columns(jac, col, layout: MapLayout, pixels, free_scale: bool):
@@ -91,10 +63,10 @@ def solve_split_step(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Damped Gauss–Newton step with shared node unknowns.
 
-    ``jac`` ``(N, L, 5)`` and ``col`` ``(N, L)`` as in ``gauss_newton.curvature_and_columns``; ``grad``
-    ``(N, 5)`` each pixel's ∂loss/∂x (for a coarse map: the derivative by the map's value at the
+    ``jac`` ``(N, L, N_PARAMS)`` and ``col`` ``(N, L)`` as in ``gauss_newton.curvature_and_columns``; ``grad``
+    ``(N, N_PARAMS)`` each pixel's ∂loss/∂x (for a coarse map: the derivative by the map's value at the
     pixel); ``grad_scale`` ``(N,)`` each pixel's share of ∂loss/∂log s; ``lam`` ``(N,)``.
-    Returns ``dx`` ``(N, 5)`` (a coarse map's column: its interpolated change at the pixel),
+    Returns ``dx`` ``(N, N_PARAMS)`` (a coarse map's column: its interpolated change at the pixel),
     ``dz`` ``(n_nodes,)``, ``d log s`` (0-d) and the shared unknowns' decrement −bᵀδg (b the reduced
     right side): twice the loss decrease the step predicts from the nodes and scale (after the fine
     maps have followed), the measure of whether the shared unknowns have converged."""
@@ -115,7 +87,7 @@ def solve_split_step(
     step = -torch.cholesky_solve((rhs / sc[0] * seen[0])[None, :, None], chol)[0, :, 0] / sc[0] * seen[0]
     local = step[idx]
     dxf = -(y + (x @ local[..., None])[..., 0])
-    dx = torch.empty(n, 5, dtype=torch.float64, device=jac.device)
+    dx = torch.empty(n, N_PARAMS, dtype=torch.float64, device=jac.device)
     dx[:, layout.fine] = dxf
     dx[:, layout.coarse] = (local[:, : 4 * nc].reshape(n, nc, 4) * wts.double().reshape(n, nc, 4)).sum(-1)
     ds = step[layout.n_nodes] if free_scale else torch.zeros((), dtype=torch.float64, device=jac.device)
@@ -123,7 +95,7 @@ def solve_split_step(
 
 
 def marginal_variance(jac: torch.Tensor, col: torch.Tensor, free_scale: bool, layout: MapLayout, pixels: torch.Tensor) -> torch.Tensor:
-    """Variance of every pixel's five unknowns in x ``(N, 5)`` from whitened ``jac`` ``(N, L, 5)`` and
+    """Variance of every pixel's unknowns in x ``(N, N_PARAMS)`` from whitened ``jac`` ``(N, L, N_PARAMS)`` and
     ``col`` ``(N, L)`` (rows divided by each band's noise σ): the inverse Fisher information with every
     other unknown, shared ones included, free."""
     n = jac.shape[0]
@@ -134,7 +106,7 @@ def marginal_variance(jac: torch.Tensor, col: torch.Tensor, free_scale: bool, la
     d = torch.diagonal(s).clamp_min(1e-300).sqrt()
     cov = torch.linalg.pinv(s / (d[:, None] * d[None, :]), hermitian=True) / (d[:, None] * d[None, :])
     local = cov[idx[:, :, None], idx[:, None, :]]  # (N, m, m)
-    var = torch.empty(n, 5, dtype=torch.float64, device=jac.device)
+    var = torch.empty(n, N_PARAMS, dtype=torch.float64, device=jac.device)
     eye = torch.eye(len(layout.fine), dtype=torch.float64, device=jac.device).expand(n, -1, -1)
     a_inv = block_solve(factor, eye.clone())
     var[:, layout.fine] = torch.diagonal(a_inv + x @ local @ x.transpose(1, 2), dim1=1, dim2=2)

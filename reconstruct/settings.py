@@ -10,15 +10,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
+from ..formats.errors import SettingsError
+from ..formats.settings import Strict, load_settings
 from ..model import ModelSettings
-from ..model.settings import load_settings
+from .optimizers import METHODS, PER_PIXEL_METHODS
 
 __all__ = ["DEFAULT_MAP_CELL_MM", "FitSettings", "FitSettingsError", "load_fit_settings"]
 
 
-class FitSettingsError(ValueError):
+class FitSettingsError(SettingsError):
     """A fit settings file or value that cannot be used; the message names the file and key."""
 
 
@@ -27,23 +29,18 @@ class FitSettingsError(ValueError):
 #: on 0.375-mm nodes (20 across the 7.5-mm window).
 DEFAULT_MAP_CELL_MM = {"C_m": 0.0, "beta_m": 1.5, "C_he": 0.0, "C_bc": 100.0, "C_hd": 0.375}
 _PER_PIXEL = dict.fromkeys(DEFAULT_MAP_CELL_MM, 0.0)
-#: Methods that fit every map per pixel. ``gn`` too: its exact gradient with the homogeneous curvature
-#: does not control the shared nodes (measured on a 24² cube: every step from the start rejected).
-_PER_PIXEL_METHODS = ("gn", "adam", "paper-fd")
 
 
-class FitSettings(BaseModel):
-    """Everything that shapes a map fit. Defaults are the measured choices (docs in each field)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, protected_namespaces=())
+class FitSettings(Strict):
+    """Everything that shapes a map fit. Defaults are the measured choices (docs/reconstruct.md)."""
 
     method: str = Field(
         "gn-hom",
         description=(
-            "Optimiser (registry in reconstruct/optimizers.py): gn-hom (Gauss–Newton with each pixel's "
+            "Optimiser (the table in reconstruct/optimizers.py): gn-hom (Gauss–Newton with each pixel's "
             "homogeneous Jacobian on the heterogeneous residual: forward renders only), gn (the same "
             "curvature with the exact gradient from one forward+backward), adam (autograd gradients), "
-            "paper-fd (DWRR08 §6.3: gradient descent by forward differences, 6 renders a step)."
+            "paper-fd (DWRR08 §6.3: gradient descent by forward differences, 1 + N_PARAMS renders a step)."
         ),
     )
     start: Literal["homogeneous", "paper"] = Field(
@@ -57,20 +54,22 @@ class FitSettings(BaseModel):
         3.0,
         ge=0,
         description=(
-            "Occluded skin simulated beyond the window. Measured against 10 mm on the palest Table 2 skin at 64²: "
-            "1 mm moves a window pixel by up to 1.6% (670 nm), 2 mm by 0.23%, 5 mm by 3.5·10⁻⁵; 3 mm keeps every "
-            "visible pixel within ~6·10⁻⁴, a tenth of the camera noise."
+            "Occluded skin simulated beyond the window (mm): light that enters through the window and travels under "
+            "the tape comes back into the edge pixels. The default keeps every visible pixel within a tenth of the "
+            "camera noise of a wider border (docs/reconstruct.md, \"Settings\")."
         ),
     )
     view_angle_deg: float | None = Field(
-        None, ge=0, lt=90, description="Camera angle off the flash axis; default: the cube's meta 'camera_angle_deg', else 30."
+        None, ge=0, lt=90,
+        description="Camera angle off the flash axis (°), replacing the cube header's (the rig's); default: the header's, else 30 (DWRR08 §6.1).",
     )
     band_fwhm_nm: float | None = Field(
         None,
         ge=0,
         description=(
-            "Width of each band's filter (Gaussian FWHM, nm), modelled by a per-pixel band-mean correction; "
-            "default: the cube meta's 'band_fwhm_nm', else 10 (PHYSICS.md §7); 0: treat bands as lines."
+            "Width of every band's filter (Gaussian FWHM, nm), replacing the cube header's per-band widths (the rig's), "
+            "modelled by a per-pixel band-mean correction; default: the header's, else 10 (DWRR08 §6.1: 10-nm band-pass "
+            "filters), which the fit reports; 0: treat bands as lines."
         ),
     )
     map_cell_mm: dict[str, float] | None = Field(
@@ -93,8 +92,8 @@ class FitSettings(BaseModel):
         False,
         description=(
             "Fit one global radiometric scale (DWRR08 §6.4 found 1.02). Off: the calibration's Spectralon sets the "
-            "scale. Measured on simulated sessions: with β_m and C_bc on nodes, a free scale trades 3–4% of "
-            "brightness against them (64² session: scale 1.036, β_m off by 0.80 instead of 0.09)."
+            "scale. With β_m and C_bc on nodes a free scale trades brightness against them, which costs β_m far "
+            "more than a calibration error would (docs/reconstruct.md, \"Measured\")."
         ),
     )
     max_iterations: int = Field(60, ge=1, description="Iteration cap per level (a safety net: the convergence test stops first).")
@@ -102,9 +101,8 @@ class FitSettings(BaseModel):
         1e-3,
         gt=0,
         description=(
-            "Converged when an accepted step lowers the loss by less than this fraction. Measured: from 1e-3 to 1e-4 "
-            "the iterations double (noise being fitted along poorly determined directions) and no parameter's median "
-            "error changes by more than 1% of itself."
+            "Converged when an accepted step lowers the loss by less than this fraction. Smaller values fit the noise "
+            "along poorly determined directions: more iterations, the same errors (docs/reconstruct.md, \"Convergence and flags\")."
         ),
     )
     xtol: float = Field(
@@ -117,8 +115,8 @@ class FitSettings(BaseModel):
         ge=0,
         le=20,
         description=(
-            "gn, gn-hom: Anderson acceleration over this many past steps (0: plain Levenberg–Marquardt). Measured on "
-            "32² cubes: 5 steps doubled the rejected steps and stopped no sooner, hence off."
+            "gn, gn-hom: Anderson acceleration over this many past steps (0: plain Levenberg–Marquardt). Off: it "
+            "added rejected steps and stopped no sooner (docs/reconstruct.md, \"Settings\")."
         ),
     )
     learning_rate: float = Field(0.05, gt=0, description="adam and paper-fd: initial step in the unconstrained parameters.")
@@ -142,13 +140,11 @@ class FitSettings(BaseModel):
         """A file names only the maps it changes; the others keep the method's default."""
         if not isinstance(value, dict):
             return value
-        per_pixel = info.data.get("method") in _PER_PIXEL_METHODS
+        per_pixel = info.data.get("method") in PER_PIXEL_METHODS
         return {**(_PER_PIXEL if per_pixel else DEFAULT_MAP_CELL_MM), **value}
 
     @model_validator(mode="after")
     def _method(self) -> "FitSettings":
-        from .optimizers import METHODS  # noqa: PLC0415 (the registry imports settings' users)
-
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {', '.join(sorted(METHODS))}, got {self.method!r}")
         if self.map_cell_mm is not None:
@@ -157,7 +153,7 @@ class FitSettings(BaseModel):
                 raise ValueError(f"map_cell_mm: unknown map(s) {', '.join(sorted(unknown))}; the maps are {', '.join(DEFAULT_MAP_CELL_MM)}")
             if any(v < 0 for v in self.map_cell_mm.values()):
                 raise ValueError(f"map_cell_mm: a node spacing must be ≥ 0 mm (0: per pixel), got {self.map_cell_mm}")
-        if self.coarse_maps and self.method in _PER_PIXEL_METHODS:
+        if self.coarse_maps and self.method in PER_PIXEL_METHODS:
             raise ValueError(
                 f"method {self.method} fits every map per pixel; map_cell_mm puts {', '.join(self.coarse_maps)} on nodes "
                 "(use gn-hom, or leave map_cell_mm out)"
@@ -169,7 +165,7 @@ class FitSettings(BaseModel):
         """The node spacing of every map as the fit uses it (``map_cell_mm`` resolved)."""
         if self.map_cell_mm is not None:
             return dict(self.map_cell_mm)
-        return dict(_PER_PIXEL if self.method in _PER_PIXEL_METHODS else DEFAULT_MAP_CELL_MM)
+        return dict(_PER_PIXEL if self.method in PER_PIXEL_METHODS else DEFAULT_MAP_CELL_MM)
 
     @property
     def coarse_maps(self) -> list[str]:

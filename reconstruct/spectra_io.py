@@ -15,10 +15,12 @@ from pathlib import Path
 
 import torch
 
+from ..formats.errors import InputError
+
 __all__ = ["MeasuredSpectra", "SpectraFileError", "read_spectra_csv"]
 
 
-class SpectraFileError(ValueError):
+class SpectraFileError(InputError):
     """A spectra file that cannot be used; the message names the file, line and column."""
 
 

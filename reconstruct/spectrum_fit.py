@@ -1,39 +1,50 @@
 """Fit the five skin parameters to point reflectance spectra with the homogeneous model.
 
 A point measurement (a spectrometer, one pixel ignoring its neighbours) sees no spatial structure, so
-the homogeneous two-layer model is all it needs: the diffuse reflectance R_d(λ) of PHYSICS.md §2 with
+the homogeneous two-layer model is all it needs: the diffuse reflectance R_d(λ) of the two-layer
+diffusion model (DWRR08 §3, Eq. 3; Donner & Jensen 2005; docs/model.md, "Radiometric convention") with
 the layers' exact totals (closed form, smooth in every parameter).
 
-All spectra (and all starts) are one batched, projected Levenberg–Marquardt problem: per spectrum a
-5×5 (6×6 with a free scale) normal system, Jacobians by forward-mode autodiff, damping adapted per
-spectrum. Parameters are scaled to [0, 1] by their DWRR08 Table 1 bounds and kept in that box; one
-resting on a bound with the gradient pushing outward is held there, so a bound is reached exactly
-(and reported) instead of approached forever, as a sigmoid reparameterisation would.
+All spectra (and all starts) are one batched, projected Levenberg–Marquardt problem: per spectrum and
+start an N_PARAMS × N_PARAMS system (one more unknown with a free scale), Jacobians by forward-mode
+autodiff, the damped step and the damping rule of ``least_squares`` (as the map fit's). Parameters are
+scaled to [0, 1] by their DWRR08 Table 1 bounds and kept in that box; one resting on a bound with the
+gradient pushing outward is held there (its column zeroed: ``least_squares`` then leaves it), so a
+bound is reached exactly (and reported) instead of approached forever, as a sigmoid
+reparameterisation would.
 
-Shapes: spectra ``(B, L)``, wavelengths ``(L,)``.
+``fit_spectra`` is three named steps: ``_starts`` (every spectrum from every start), ``_solve`` (the
+projected LM iterations), ``_best`` (each spectrum's best end point, its residual and bounds).
+
+Shapes: spectra ``(B, L)``, wavelengths ``(L,)``; unknowns ``(B·S, n)`` spectrum-major (S starts).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import math
+from dataclasses import dataclass, field
+from typing import Callable
 
 import torch
-import torch.autograd.forward_ad as fwAD
 
-from ..model import PARAMETER_BOUNDS, PARAMETER_NAMES, SkinModel, SkinParams
+from ..model import N_PARAMS, PARAMETER_NAMES, SkinModel, SkinParams, parameter_bounds
 from ..model.radiometry import specular_reflectance
+from .least_squares import LAMBDA0, LAMBDA_MAX, damped_step, forward_jacobian, next_damping, predicted_decrease
+from .unknowns import near_bound
 
-__all__ = ["PAPER_START", "SpectrumFit", "fit_spectra"]
+__all__ = ["AT_BOUND_FRACTION", "PAPER_START", "SpectrumFit", "fit_spectra"]
 
-#: DWRR08 §8: eumelanin 0.73%, pheomelanin 0.3%, epidermal blood 0.3%, carotene 0, dermal blood 0.6%.
+#: DWRR08 §8 ("Fit convergence"): eumelanin 0.73%, pheomelanin 0.3%, epidermal blood 0.3%, carotene 0,
+#: dermal blood 0.6%.
 PAPER_START = {"C_m": 0.0103, "beta_m": 0.73 / 1.03, "C_he": 0.003, "C_bc": 0.0, "C_hd": 0.006}
 _EXTRA_STARTS = (
     {"C_m": 0.03, "beta_m": 0.3, "C_he": 0.005, "C_bc": 0.002, "C_hd": 0.01},
     {"C_m": 0.12, "beta_m": 0.8, "C_he": 0.01, "C_bc": 0.005, "C_hd": 0.02},
 )
+#: A parameter within this fraction of its range of a bound is reported at the bound.
 AT_BOUND_FRACTION = 1e-3
+#: The free scale's log is kept within ±this (a factor e³: any calibration error is far inside).
+_LOG_SCALE_LIMIT = 3.0
 
 
 @dataclass
@@ -49,10 +60,15 @@ class SpectrumFit:
     fitted: torch.Tensor = field(repr=False)
 
 
-def _bounds(dtype, device):
-    lo = torch.tensor([PARAMETER_BOUNDS[n][0] for n in PARAMETER_NAMES], dtype=dtype, device=device)
-    hi = torch.tensor([PARAMETER_BOUNDS[n][1] for n in PARAMETER_NAMES], dtype=dtype, device=device)
-    return lo, hi
+@dataclass
+class _Problem:
+    """The batched problem: ``target`` ``(B·S, L)``, the box ``[box_lo, box_hi]`` of the unknowns and
+    ``predict`` ``(B·S, n)`` → ``(B·S, L)``."""
+
+    target: torch.Tensor
+    box_lo: torch.Tensor
+    box_hi: torch.Tensor
+    predict: Callable[[torch.Tensor], torch.Tensor]
 
 
 def fit_spectra(
@@ -80,47 +96,48 @@ def fit_spectra(
     if not bool(torch.isfinite(y).all()):
         raise ValueError("measured spectra contain NaN or infinite values")
     wl = torch.as_tensor(wavelength_nm, dtype=torch.float64)
-    dev = y.device
     starts = starts or (PAPER_START, *_EXTRA_STARTS)
-    n_spec, n_start = y.shape[0], len(starts)
-    lo, hi = _bounds(y.dtype, y.device)
-    p0 = torch.tensor([[s[n] for n in PARAMETER_NAMES] for s in starts], dtype=y.dtype, device=dev)
-    x = ((p0 - lo) / (hi - lo)).repeat(n_spec, 1)  # (B*S, 5) in [0, 1], spectrum-major
-    n_free = 5
-    if free_scale:
-        x = torch.cat([x, torch.zeros(x.shape[0], 1, dtype=x.dtype, device=dev)], dim=1)
-    box_lo = torch.zeros(x.shape[1], dtype=x.dtype, device=dev)
-    box_hi = torch.ones(x.shape[1], dtype=x.dtype, device=dev)
+    problem, x0 = _starts(y, wl, model, starts, free_scale, specular_included)
+    x, cost, converged, iterations = _solve(problem, x0, max_iterations, tolerance)
+    return _best(problem, y, x, cost, converged, iterations, len(starts), free_scale)
+
+
+def _starts(y, wl, model: SkinModel, starts, free_scale: bool, specular_included: bool) -> tuple[_Problem, torch.Tensor]:
+    """Every spectrum repeated once per start, the unknowns scaled to the box, the model that predicts them."""
+    lo, hi = parameter_bounds(y.dtype, y.device)
+    p0 = torch.tensor([[s[n] for n in PARAMETER_NAMES] for s in starts], dtype=y.dtype, device=y.device)
+    x = ((p0 - lo) / (hi - lo)).repeat(y.shape[0], 1)  # (B·S, N_PARAMS) in [0, 1], spectrum-major
+    box_lo, box_hi = torch.zeros(N_PARAMS, dtype=y.dtype, device=y.device), torch.ones(N_PARAMS, dtype=y.dtype, device=y.device)
     if free_scale:  # log scale, unbounded in practice
-        box_lo[5], box_hi[5] = -3.0, 3.0
-    target = y.repeat_interleave(n_start, dim=0)
+        x = torch.cat([x, torch.zeros(x.shape[0], 1, dtype=x.dtype, device=x.device)], dim=1)
+        limit = torch.full((1,), _LOG_SCALE_LIMIT, dtype=y.dtype, device=y.device)
+        box_lo, box_hi = torch.cat([box_lo, -limit]), torch.cat([box_hi, limit])
     offset = 0.0
     if specular_included:
         o = model.settings.optics
         offset = specular_reflectance(o.n_epidermis, o.n_above, cos_theta_i=math.cos(math.radians(8.0)))
 
     def predict(xv: torch.Tensor) -> torch.Tensor:
-        p = lo + (hi - lo) * xv[:, :n_free]
-        r = model.diffuse_reflectance(SkinParams.from_tensor(p), wl)
+        r = model.diffuse_reflectance(SkinParams.from_tensor(lo + (hi - lo) * xv[:, :N_PARAMS]), wl)
         if free_scale:
-            r = r * torch.exp(xv[:, 5:6])
+            r = r * torch.exp(xv[:, N_PARAMS:])
         return r + offset
 
-    def residual_and_jacobian(xv: torch.Tensor, tgt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """One forward-mode pass over the batch repeated once per unknown, each copy with one tangent."""
-        n, b = xv.shape[1], xv.shape[0]
-        tangents = torch.eye(n, dtype=xv.dtype, device=xv.device).repeat_interleave(b, dim=0)
-        with fwAD.dual_level():
-            out = predict(fwAD.make_dual(xv.repeat(n, 1), tangents))
-            primal, tangent_out = fwAD.unpack_dual(out)
-        jac = tangent_out.reshape(n, b, -1).permute(1, 2, 0)
-        return primal[:b] - tgt, jac
+    return _Problem(y.repeat_interleave(len(starts), dim=0), box_lo, box_hi, predict), x
 
-    # Projected Levenberg–Marquardt on the box: a variable resting on a bound with the gradient
-    # pushing outward is held there (its row and column replaced by the identity). Only problems not
-    # yet converged are evaluated.
-    damping = torch.full((x.shape[0],), 1e-3, dtype=x.dtype, device=dev)
-    res, jac = residual_and_jacobian(x, target)
+
+def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: float):
+    """Projected LM on the box until every problem has converged: a variable resting on a bound with the
+    gradient pushing outward is held there. Only problems not yet converged are evaluated. Returns the
+    end points, their costs ‖r‖², the converged flags and the iterations run."""
+
+    def residual_and_jacobian(xv, target):
+        value, jac = forward_jacobian(problem.predict, xv)
+        return value - target, jac
+
+    lo, hi = problem.box_lo, problem.box_hi
+    damping = torch.full((x.shape[0],), LAMBDA0, dtype=x.dtype, device=x.device)
+    res, jac = residual_and_jacobian(x, problem.target)
     cost = (res**2).sum(-1)
     converged = torch.zeros_like(cost, dtype=torch.bool)
     iterations = 0
@@ -128,48 +145,44 @@ def fit_spectra(
         act = (~converged).nonzero()[:, 0]
         xa, ra, ja, ca, da = x[act], res[act], jac[act], cost[act], damping[act]
         grad = (ja.transpose(1, 2) @ ra[..., None])[..., 0]
-        held = ((xa <= box_lo) & (grad > 0)) | ((xa >= box_hi) & (grad < 0))
-        free = (~held).to(x.dtype)
-        jac_f = ja * free[:, None, :]
-        jtj = jac_f.transpose(1, 2) @ jac_f
-        diag = torch.diagonal(jtj, dim1=1, dim2=2)
-        system = jtj + torch.diag_embed(da[:, None] * diag + 1e-12 + (1.0 - free))
-        step = -torch.linalg.solve(system, (grad * free)[..., None])[..., 0]
-        x_new = torch.minimum(torch.maximum(xa + step, box_lo), box_hi)
-        res_new, jac_new = residual_and_jacobian(x_new, target[act])
+        free = (~(((xa <= lo) & (grad > 0)) | ((xa >= hi) & (grad < 0)))).to(x.dtype)
+        jac_f, grad_f = ja * free[:, None, :], grad * free
+        step = damped_step(jac_f.transpose(1, 2) @ jac_f, grad_f, da)
+        x_new = torch.minimum(torch.maximum(xa + step, lo), hi)
+        res_new, jac_new = residual_and_jacobian(x_new, problem.target[act])
         cost_new = (res_new**2).sum(-1)
         better = cost_new < ca
-        gain = (ca - cost_new) / ca.clamp_min(1e-30)
         moved = (x_new - xa).abs().max(-1).values
+        gain = (ca - cost_new) / predicted_decrease(jac_f, x_new - xa, grad_f).clamp_min(1e-30)
+        da = next_damping(da, better, gain, ~better)
         x[act] = torch.where(better[:, None], x_new, xa)
         res[act] = torch.where(better[:, None], res_new, ra)
         jac[act] = torch.where(better[:, None, None], jac_new, ja)
         cost[act] = torch.where(better, cost_new, ca)
-        da = torch.where(better, da / 5.0, da * 4.0).clamp(1e-12, 1e12)
         damping[act] = da
-        done = (better & ((gain < tolerance) | (moved < 1e-9))) | (~better & (moved < 1e-12)) | (da > 1e8)
-        converged[act] = done
+        relative = (ca - cost_new) / ca.clamp_min(1e-30)
+        # converged: the cost stopped falling, the step vanished, or no damping makes it fall
+        converged[act] = (better & ((relative < tolerance) | (moved < 1e-9))) | (~better & (moved < 1e-12)) | (da >= LAMBDA_MAX)
         if bool(converged.all()):
             break
-    # keep the best start of every spectrum
-    cost = cost.reshape(n_spec, n_start)
-    best = cost.argmin(dim=1)
-    pick = torch.arange(n_spec, device=dev) * n_start + best
+    return x, cost, converged, iterations
+
+
+def _best(problem: _Problem, y, x, cost, converged, iterations: int, n_start: int, free_scale: bool) -> SpectrumFit:
+    """Each spectrum's best start: its parameters, fitted spectrum, residual, scale and bounds reached."""
+    n_spec = y.shape[0]
+    pick = torch.arange(n_spec, device=y.device) * n_start + cost.reshape(n_spec, n_start).argmin(dim=1)
     x_best = x[pick]
-    p = lo + (hi - lo) * x_best[:, :5]
-    fitted = predict(x_best)
-    rms = torch.sqrt(((fitted - y) ** 2).mean(-1))
-    scale = torch.exp(x_best[:, 5]) if free_scale else torch.ones(n_spec, dtype=y.dtype, device=dev)
-    margin = AT_BOUND_FRACTION * (hi - lo)
-    at_bound = [
-        [n for j, n in enumerate(PARAMETER_NAMES) if p[b, j] <= lo[j] + margin[j] or p[b, j] >= hi[j] - margin[j]]
-        for b in range(n_spec)
-    ]
+    lo, hi = parameter_bounds(y.dtype, y.device)
+    p = lo + (hi - lo) * x_best[:, :N_PARAMS]
+    fitted = problem.predict(x_best)
+    scale = torch.exp(x_best[:, N_PARAMS]) if free_scale else torch.ones(n_spec, dtype=y.dtype, device=y.device)
+    hit = near_bound(p, AT_BOUND_FRACTION, dim=-1)
     return SpectrumFit(
         params=SkinParams.from_tensor(p),
-        rms_residual=rms,
+        rms_residual=torch.sqrt(((fitted - y) ** 2).mean(-1)),
         scale=scale,
-        at_bound=at_bound,
+        at_bound=[[n for j, n in enumerate(PARAMETER_NAMES) if hit[b, j]] for b in range(n_spec)],
         iterations=iterations,
         converged=converged[pick],
         fitted=fitted,

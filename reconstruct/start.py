@@ -1,6 +1,6 @@
 """Where the map fit starts: the paper's pale skin, or every pixel's own homogeneous inversion.
 
-``paper``: DWRR08 §6.3's "very pale Caucasian" parameters everywhere (``PAPER_START``).
+``paper``: DWRR08 §8's "very pale Caucasian" parameters everywhere (``PAPER_START``).
 
 ``homogeneous``: the point-spectrum fit (``spectrum_fit.fit_spectra``: batched projected
 Levenberg–Marquardt on the homogeneous model, three starts per spectrum) of every loss pixel's
@@ -9,14 +9,14 @@ the homogeneous model diffuse reflectance), ignoring the cross-talk between pixe
 dark edges. It runs on the coarsest level only, where pixels are few; finer levels start from the
 level below, which already carries the cross-talk.
 
-Shapes: unknowns ``(5, H, W)``.
+Shapes: unknowns ``(N_PARAMS, H, W)``.
 """
 
 from __future__ import annotations
 
 import torch
 
-from ..model import PARAMETER_NAMES, SkinModel
+from ..model import N_PARAMS, PARAMETER_NAMES, SkinModel
 from .problem import LevelProblem
 from .spectrum_fit import PAPER_START, fit_spectra
 from .unknowns import X_START_LIMIT, extend, from_params
@@ -26,7 +26,7 @@ __all__ = ["STARTS", "homogeneous_start", "paper_start"]
 
 def paper_start(problem: LevelProblem, dtype=torch.float32, device=None) -> torch.Tensor:
     h, w = problem.level.shape
-    p = torch.tensor([PAPER_START[n] for n in PARAMETER_NAMES], dtype=torch.float64).view(5, 1, 1).expand(5, h, w)
+    p = torch.tensor([PAPER_START[n] for n in PARAMETER_NAMES], dtype=torch.float64).view(N_PARAMS, 1, 1).expand(N_PARAMS, h, w)
     return from_params(p, X_START_LIMIT).to(dtype=dtype, device=device).contiguous()
 
 
@@ -37,10 +37,11 @@ def homogeneous_start(problem: LevelProblem, dtype=torch.float32, device=None) -
     model = SkinModel(problem.renderer.settings, problem.renderer.model.cache_dir)
     fit = fit_spectra(spectra, problem.wavelength_nm[used.cpu()].cpu(), model, max_iterations=50)
     h, w = problem.level.shape
-    p = torch.tensor([PAPER_START[n] for n in PARAMETER_NAMES], dtype=torch.float64).view(5, 1).repeat(1, h * w)
+    p = torch.tensor([PAPER_START[n] for n in PARAMETER_NAMES], dtype=torch.float64).view(N_PARAMS, 1).repeat(1, h * w)
     p[:, problem.pixels.cpu()] = fit.params.as_tensor().T
-    x = from_params(p.reshape(5, h, w), X_START_LIMIT).to(dtype=dtype, device=device)
+    x = from_params(p.reshape(N_PARAMS, h, w), X_START_LIMIT).to(dtype=dtype, device=device)
     return extend(x, problem.index)
 
 
+#: ``FitSettings.start`` → the function that makes the coarsest level's unknowns.
 STARTS = {"paper": paper_start, "homogeneous": homogeneous_start}

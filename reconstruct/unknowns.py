@@ -16,7 +16,7 @@ the grid's edge (``model/renderer.py``: ``F.pad(..., mode="replicate")``, also i
 edge pixels already carry their nearest visible pixel's values: the border follows the nearest visible
 pixel, as in the paper, without any copy between steps.
 
-Shapes: unknowns ``(5, H, W)``; masks ``(H, W)``; cubes ``(L, H, W)``.
+Shapes: unknowns ``(N_PARAMS, H, W)`` (maps: image layout); masks ``(H, W)``; cubes ``(L, H, W)``.
 """
 
 from __future__ import annotations
@@ -28,11 +28,12 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from ..model import PARAMETER_BOUNDS, PARAMETER_NAMES, SkinParams
+from ..formats.errors import InputError
+from ..model import N_PARAMS, SkinParams, parameter_bounds
 
 __all__ = [
-    "X_LIMIT", "X_START_LIMIT", "Level", "bounds", "dparams_dx", "extend", "extension_index", "from_params", "params_of",
-    "pyramid", "to_params", "upsample",
+    "X_LIMIT", "X_START_LIMIT", "Level", "bounds", "dparams_dx", "extend", "extension_index", "from_params", "near_bound",
+    "params_of", "params_of_rows", "pyramid", "to_params", "upsample",
 ]
 
 #: |x| cap: σ(±12) is 6·10⁻⁶ of the range from a bound — "at the bound" for every purpose here.
@@ -42,46 +43,63 @@ X_START_LIMIT = 6.0
 
 
 def bounds(dtype=torch.float32, device=None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Lower and upper bounds ``(5, 1, 1)`` in the order of ``PARAMETER_NAMES``."""
-    lo = torch.tensor([PARAMETER_BOUNDS[n][0] for n in PARAMETER_NAMES], dtype=dtype, device=device)
-    hi = torch.tensor([PARAMETER_BOUNDS[n][1] for n in PARAMETER_NAMES], dtype=dtype, device=device)
-    return lo.view(5, 1, 1), hi.view(5, 1, 1)
+    """Lower and upper bounds ``(N_PARAMS, 1, 1)`` (``model.parameter_bounds``), to broadcast over maps."""
+    lo, hi = parameter_bounds(dtype, device)
+    return lo.view(N_PARAMS, 1, 1), hi.view(N_PARAMS, 1, 1)
+
+
+def near_bound(p: torch.Tensor, fraction: float, dim: int = 0) -> torch.Tensor:
+    """Where a parameter lies within ``fraction`` of its range of a bound (the flag ``at_bound``, the
+    point fit's ``at_bound`` list): ``p`` holds the ``N_PARAMS`` parameters along ``dim``; bool, ``p``'s shape."""
+    lo, hi = parameter_bounds(p.dtype, p.device)
+    shape = [1] * p.ndim
+    shape[dim] = N_PARAMS
+    lo, hi = lo.view(shape), hi.view(shape)
+    margin = fraction * (hi - lo)
+    return (p <= lo + margin) | (p >= hi - margin)
 
 
 def to_params(x: torch.Tensor) -> torch.Tensor:
-    """Unconstrained ``(5, ...)`` → parameters ``(5, ...)`` within their bounds."""
+    """Unconstrained ``(N_PARAMS, ...)`` → parameters ``(N_PARAMS, ...)`` within their bounds."""
     lo, hi = bounds(x.dtype, x.device)
-    shape = (5,) + (1,) * (x.ndim - 1)
+    shape = (N_PARAMS,) + (1,) * (x.ndim - 1)
     return lo.view(shape) + (hi - lo).view(shape) * torch.sigmoid(x)
 
 
 def dparams_dx(x: torch.Tensor) -> torch.Tensor:
-    """∂p/∂x ``(5, ...)``."""
+    """∂p/∂x ``(N_PARAMS, ...)``."""
     lo, hi = bounds(x.dtype, x.device)
     s = torch.sigmoid(x)
-    return (hi - lo).view((5,) + (1,) * (x.ndim - 1)) * s * (1.0 - s)
+    return (hi - lo).view((N_PARAMS,) + (1,) * (x.ndim - 1)) * s * (1.0 - s)
 
 
 def from_params(p: torch.Tensor, limit: float = X_LIMIT) -> torch.Tensor:
-    """Parameters ``(5, ...)`` → unconstrained, clamped to ±``limit``."""
+    """Parameters ``(N_PARAMS, ...)`` → unconstrained, clamped to ±``limit``."""
     lo, hi = bounds(p.dtype, p.device)
-    shape = (5,) + (1,) * (p.ndim - 1)
+    shape = (N_PARAMS,) + (1,) * (p.ndim - 1)
     s = ((p - lo.view(shape)) / (hi - lo).view(shape)).clamp(1e-9, 1.0 - 1e-9)
     return torch.logit(s).clamp(-limit, limit)
 
 
+def params_of_rows(x: torch.Tensor) -> SkinParams:
+    """Unconstrained rows ``(N, N_PARAMS)`` (per-pixel layout) → ``SkinParams`` of contiguous ``(N,)``
+    tensors: each parameter's values adjacent in memory, so the model's transcendental functions take
+    their vectorised path for every pixel alike (a strided column rounds its tail differently)."""
+    return params_of(x.T.contiguous())
+
+
 def params_of(x: torch.Tensor) -> SkinParams:
-    """``(5, ...)`` unconstrained → ``SkinParams`` of ``(...)`` tensors."""
+    """``(N_PARAMS, ...)`` unconstrained → ``SkinParams`` of ``(...)`` tensors."""
     return SkinParams(*to_params(x).unbind(0))
 
 
 def extension_index(mask: torch.Tensor) -> torch.Tensor:
     """For every pixel, the flat index of the nearest pixel where ``mask`` ``(H, W)`` is True ``(H·W,)``.
 
-    Raises ``ValueError`` when no pixel is visible."""
+    Raises ``InputError`` (a ``ValueError``) when no pixel is visible."""
     m = mask.detach().cpu().numpy().astype(bool)
     if not m.any():
-        raise ValueError("no visible pixel: the cube's mask is empty (nothing to fit)")
+        raise InputError("no visible pixel: the cube's mask is empty (nothing to fit)")
     _, (iy, ix) = ndimage.distance_transform_edt(~m, return_indices=True)
     return torch.from_numpy((iy * m.shape[1] + ix).reshape(-1).astype(np.int64)).to(mask.device)
 
@@ -93,7 +111,7 @@ def extend(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
 
 
 def upsample(x: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
-    """Unconstrained maps ``(5, h, w)`` → ``(5, H, W)`` by bilinear interpolation (log-like in p)."""
+    """Unconstrained maps ``(N_PARAMS, h, w)`` → ``(N_PARAMS, H, W)`` by bilinear interpolation (log-like in p)."""
     return F.interpolate(x[None], size=shape, mode="bilinear", align_corners=False)[0]
 
 

@@ -1,8 +1,9 @@
 """The one ``skinlayers`` command; each part of the toolkit contributes its subcommands.
 
-Errors a user can cause (bad values, files, settings) end with one line on stderr and exit status 1;
-usage errors (unknown options) exit 2 as usual; nothing prints a traceback unless ``SKINLAYERS_DEBUG``
-is set.
+Errors a user can cause (``formats.errors.SkinlayersError``: bad values, files, settings, an instrument
+that does not answer; and ``OSError``: a missing file, a full disk) end with one line on stderr and exit
+status 1; usage errors (unknown options) exit 2 as usual. Anything else is a bug and keeps its traceback;
+``SKINLAYERS_DEBUG`` shows the traceback of a user error too.
 """
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ import typer
 
 from . import demo as demo_cli
 from .acquire import cli as acquire_cli
-from .acquire.devices import DeviceError
 from .calibration import cli as calibration_cli
+from .formats.errors import SkinlayersError
 from .model import cli as model_cli
 from .reconstruct import cli as reconstruct_cli
 
@@ -39,7 +40,7 @@ demo_cli.register(app)
 def main() -> None:
     try:
         app()
-    except (ValueError, OSError, KeyError, DeviceError) as exc:
+    except (SkinlayersError, OSError) as exc:
         if os.environ.get("SKINLAYERS_DEBUG"):
             raise
         message = " ".join(str(exc).split()) or exc.__class__.__name__

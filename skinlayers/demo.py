@@ -1,8 +1,9 @@
 """``skinlayers demo``: the whole job on embedded defaults, into a fresh folder.
 
 A simulated capture (the default scene, rig and camera), its calibration into a reflectance cube, the
-map fit, and a report that sets the fitted maps against the simulation's truth. Every step is the
-command a user would run (``capture --sim``, ``calibrate``, ``reconstruct``), called in turn.
+map fit, and a report that sets the fitted maps against the simulation's truth. Each step is the library
+call the matching command makes (``open_devices`` and ``run_session``, ``calibrate_session``,
+``fit_cube`` and ``write_outputs``), with the same progress bars.
 """
 
 from __future__ import annotations
@@ -13,6 +14,10 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+
+from .formats.cube import CUBE_NAME
+from .formats.errors import InputError
+from .formats.version import software_version
 
 __all__ = ["accuracy_against_truth", "demo", "register"]
 
@@ -32,9 +37,8 @@ def fresh_folder(base: Path) -> Path:
 
 def demo_scene() -> dict:
     """The demo's scene: the simulator's default without hairs. Hairs are interface absorbance the fit's
-    model does not hold; their halo in red light biases the maps around them (measured on the default
-    256² session with its five hairs: C_m 9.3%, β_m ±0.100, C_hd 9.4%; without them 5.5%, ±0.029, 7.0%;
-    at 64² with hairs β_m ±0.165)."""
+    model does not hold; their halo in red light biases the maps around them (measured in the README,
+    "Accuracy")."""
     from .acquire.scene import load_scene  # noqa: PLC0415
 
     scene = load_scene(None).model_dump(mode="json")
@@ -53,8 +57,9 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
     import torch  # noqa: PLC0415
     import torch.nn.functional as F  # noqa: PLC0415
 
+    from .formats.exr import read_exr  # noqa: PLC0415
     from .model import PARAMETER_NAMES  # noqa: PLC0415
-    from .model.maps_io import read_exr, read_maps  # noqa: PLC0415
+    from .model.maps_io import read_maps  # noqa: PLC0415
     from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
 
     truth = read_maps(session / "truth" / "maps.exr")
@@ -141,27 +146,25 @@ def demo(
     Example: skinlayers demo            (about four minutes on two CPU cores, the first time longer)
              skinlayers demo --size 64  (under a minute)
     """
-    from .acquire.cli import capture  # noqa: PLC0415
+    import yaml  # noqa: PLC0415
+
     from .acquire.rig import load_rig  # noqa: PLC0415
-    from .calibration.cli import calibrate  # noqa: PLC0415
-    from .reconstruct.cli import reconstruct  # noqa: PLC0415
 
     if size < 16 or size % 8:
-        raise ValueError(f"--size {size}: expected a multiple of 8, at least 16 (e.g. 64, 128, 256)")
+        raise InputError(f"--size {size}: expected a multiple of 8, at least 16 (e.g. 64, 128, 256)")
+    if device not in ("cpu", "cuda", "auto"):
+        raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
     if scene is not None:  # a bad scene file is refused before any folder is made
         from .acquire.scene import load_scene  # noqa: PLC0415
 
         load_scene(scene)
     if out is not None and out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ValueError(f"{out}: exists and is not empty; the demo writes into a fresh folder")
+        raise InputError(f"{out}: exists and is not empty; the demo writes into a fresh folder")
     folder = out if out is not None else fresh_folder(Path(DEFAULT_FOLDER))
     folder.mkdir(parents=True, exist_ok=True)
     session, calibrated, reconstruction = folder / "session", folder / "calibrated", folder / "reconstruction"
-    rig_file = folder / "rig.yaml"
-    import yaml  # noqa: PLC0415
-
     rig = load_rig(geometry={"cube_px": size, "rectify_px": 2 * size}, camera={"driver": "simulated"})
-    rig_file.write_text(yaml.safe_dump(rig.model_dump(mode="json"), sort_keys=False))
+    (folder / "rig.yaml").write_text(yaml.safe_dump(rig.model_dump(mode="json"), sort_keys=False))
     if scene is None:
         scene = folder / "scene.yaml"
         scene.write_text(yaml.safe_dump(demo_scene(), sort_keys=False))
@@ -172,19 +175,16 @@ def demo(
         return time.perf_counter()
 
     t = step(f"1/4 capture (simulated rig, seed {seed}) → {session}")
-    capture(out=session, sim=True, rig_file=rig_file, sim_camera=False, wheel_port=None, scene=scene, sim_settings=None,
-            seed=seed, resume=False, yes=True, subject="demo", site="simulated forearm", operator="skinlayers demo",
-            wheel_speed=0.0, device=device)
+    _capture(session, rig, scene, seed, device)
     times["capture_s"] = time.perf_counter() - t
     t = step(f"2/4 calibrate → {calibrated}")
-    calibrate(session=session, out=calibrated, config=None, no_dark_frame=False, no_flat_field=False, no_gray_card=False,
-              no_polarization=False, no_spectralon=False, no_align=False, gray_card_roi=None, force=False, as_json=False)
+    _calibrate(session, calibrated)
     times["calibrate_s"] = time.perf_counter() - t
     t = step(f"3/4 reconstruct → {reconstruction}")
-    reconstruct(source=calibrated / "cube.exr", out=reconstruction, config=None, device=device, method=None, start=None, force=False)
+    _reconstruct(calibrated / CUBE_NAME, reconstruction, device)
     times["reconstruct_s"] = time.perf_counter() - t
     t = step("4/4 report: the fit against the simulation's truth")
-    accuracy = accuracy_against_truth(session, reconstruction, calibrated / "cube.exr")
+    accuracy = accuracy_against_truth(session, reconstruction, calibrated / CUBE_NAME)
     accuracy["times_s"] = {k: round(v, 1) for k, v in times.items()}
     (folder / "accuracy.json").write_text(json.dumps(accuracy, indent=2))
     _figure(session, reconstruction, folder / "truth_vs_fit.png")
@@ -192,10 +192,47 @@ def demo(
     typer.echo("")
     typer.echo(f"demo folder:    {folder}")
     typer.echo(f"  session:      {session}   (raw DNG frames, manifest.json, truth/)")
-    typer.echo(f"  cube:         {calibrated / 'cube.exr'}   (+ calibration.json, contact_sheet.png)")
+    typer.echo(f"  cube:         {calibrated / CUBE_NAME}   (+ calibration.json, contact_sheet.png)")
     typer.echo(f"  maps:         {reconstruction / 'maps.exr'}   (+ fit.json, report.png)")
     typer.echo(f"  accuracy:     {folder / 'accuracy.json'}, {folder / 'truth_vs_fit.png'}")
     typer.echo("times: " + ", ".join(f"{k[:-2]} {v:.0f} s" for k, v in times.items()))
+
+
+def _capture(session: Path, rig, scene: Path, seed: int, device: str) -> None:
+    """A simulated session on the instant simulated wheel, its truth beside the frames."""
+    from .acquire.cli import capture_progress  # noqa: PLC0415
+    from .acquire.connect import open_devices  # noqa: PLC0415
+    from .acquire.session import AutoOperator, run_session  # noqa: PLC0415
+
+    with open_devices(rig, simulated=True, scene=scene, seed=seed, wheel_time_scale=0.0,
+                      device=None if device == "auto" else device) as devices, capture_progress() as progress:
+        run_session(session, devices.rig, devices.wheel, devices.camera, AutoOperator(devices.place), subject="demo",
+                    site="simulated forearm", operator_name="skinlayers demo", simulated=True, notes=devices.notes,
+                    software_version=software_version(), progress=progress)
+    devices.bench.write_truth(session)
+    typer.echo(f"session: {session} ({len(rig.bands)} bands; truth in {session / 'truth'})", err=True)
+
+
+def _calibrate(session: Path, calibrated: Path) -> None:
+    from .calibration import calibrate_session  # noqa: PLC0415
+    from .calibration.cli import calibration_progress, print_summary  # noqa: PLC0415
+
+    with calibration_progress() as progress:
+        result = calibrate_session(session, calibrated, progress=progress)
+    print_summary(result.report, result)
+
+
+def _reconstruct(cube_path: Path, reconstruction: Path, device: str) -> None:
+    from .formats.cube import read_cube  # noqa: PLC0415
+    from .reconstruct import fit_cube, load_fit_settings, write_outputs  # noqa: PLC0415
+    from .reconstruct.cli import fit_progress, print_fit_summary  # noqa: PLC0415
+
+    settings = load_fit_settings(None)
+    cube = read_cube(cube_path)
+    with fit_progress(settings, cube.shape[0]) as on_event:
+        fit = fit_cube(cube, settings, device=device, progress=on_event)
+    write_outputs(fit, settings, reconstruction, source=str(cube_path))
+    print_fit_summary(fit, settings)
 
 
 def _print_accuracy(accuracy: dict) -> None:

@@ -1,6 +1,9 @@
-"""Shared test set-up: every test builds its Gaussian tables in one temporary cache, never in ~/.cache."""
+"""Shared test set-up: every test builds its Gaussian tables in one temporary cache, never in ~/.cache;
+``run_cli`` runs the ``skinlayers`` command in the test's process."""
 
 from __future__ import annotations
+
+import sys
 
 import pytest
 
@@ -11,3 +14,21 @@ def _table_cache(tmp_path_factory):
     mp.setenv("SKINLAYERS_CACHE", str(tmp_path_factory.mktemp("skinlayers-cache")))
     yield
     mp.undo()
+
+
+@pytest.fixture
+def run_cli(monkeypatch, capsys):
+    """``run_cli(*args)`` → (exit status, stdout, stderr) of ``skinlayers ARGS`` (status 0 when it returns)."""
+    from skinlayers.cli import main
+
+    def run(*args: str) -> tuple[int, str, str]:
+        monkeypatch.setattr(sys, "argv", ["skinlayers", *args])
+        code = 0
+        try:
+            main()
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+        out = capsys.readouterr()
+        return code, out.out, out.err
+
+    return run

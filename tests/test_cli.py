@@ -9,24 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from skinlayers.cli import main
 
 NIST = Path(__file__).resolve().parent / "data" / "nist_skin_reflectance_forearm_avg_370-830nm.csv"
 
 
-def run(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["skinlayers", *args])
-    code = 0
-    try:
-        main()
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
-def test_spectrum_json(monkeypatch, capsys):
-    code, out, _ = run(monkeypatch, capsys, "spectrum", "--C_m", "0.02", "--beta_m", "0.5", "--C_he", "0.002",
+def test_spectrum_json(run_cli):
+    code, out, _ = run_cli("spectrum", "--C_m", "0.02", "--beta_m", "0.5", "--C_he", "0.002",
                        "--C_bc", "0.001", "--C_hd", "0.005", "--wavelengths", "400:700:50", "--json")
     assert code == 0
     report = json.loads(out)
@@ -36,26 +26,26 @@ def test_spectrum_json(monkeypatch, capsys):
     assert report["params"] == {"C_m": 0.02, "beta_m": 0.5, "C_he": 0.002, "C_bc": 0.001, "C_hd": 0.005}
 
 
-def test_spectrum_comma_list_and_plot(monkeypatch, capsys, tmp_path):
+def test_spectrum_comma_list_and_plot(tmp_path, run_cli):
     png = tmp_path / "s.png"
-    code, out, _ = run(monkeypatch, capsys, "spectrum", "--wavelengths", "450, 550,650", "--plot", str(png))
+    code, out, _ = run_cli("spectrum", "--wavelengths", "450, 550,650", "--plot", str(png))
     assert code == 0 and png.stat().st_size > 10_000
     assert "sRGB" in out and "650" in out
 
 
-def test_skin_types_figure(monkeypatch, capsys, tmp_path):
+def test_skin_types_figure(tmp_path, run_cli):
     png = tmp_path / "types.png"
-    code, out, _ = run(monkeypatch, capsys, "skin-types", "--plot", str(png), "--json")
+    code, out, _ = run_cli("skin-types", "--plot", str(png), "--json")
     assert code == 0 and png.exists()
     rows = json.loads(out)["skin_types"]
     assert [r["name"] for r in rows][0] == "I interior" and len(rows) == 9
 
 
-def test_fit_spectrum_json(monkeypatch, capsys, tmp_path):
+def test_fit_spectrum_json(tmp_path, run_cli):
     lines = NIST.read_text().splitlines()
     small = tmp_path / "three.csv"
     small.write_text("\n".join(",".join(line.split(",")[:4]) for line in lines if not line.startswith("#")) + "\n")
-    code, out, _ = run(monkeypatch, capsys, "fit-spectrum", str(small), "--json")
+    code, out, _ = run_cli("fit-spectrum", str(small), "--json")
     assert code == 0
     report = json.loads(out)
     assert [s["name"] for s in report["spectra"]] == ["subject_1", "subject_2", "subject_3"]
@@ -80,26 +70,26 @@ def test_fit_spectrum_json(monkeypatch, capsys, tmp_path):
         (["fit-spectrum", str(NIST), "--range", "300:900"], "--range"),
     ],
 )
-def test_bad_input_one_clear_line(monkeypatch, capsys, args, needle):
-    code, out, err = run(monkeypatch, capsys, *args)
+def test_bad_input_one_clear_line(args, needle, run_cli):
+    code, out, err = run_cli(*args)
     assert code != 0
     assert needle in err
     assert err.startswith("error: ") and err.count("\n") == 1
     assert "Traceback" not in err + out
 
 
-def test_bad_files_one_clear_line(monkeypatch, capsys, tmp_path):
+def test_bad_files_one_clear_line(tmp_path, run_cli):
     params = tmp_path / "p.yaml"
     params.write_text("C_m: 0.01\nmelanin: 0.2\n")
-    code, _, err = run(monkeypatch, capsys, "spectrum", "--params", str(params))
+    code, _, err = run_cli("spectrum", "--params", str(params))
     assert code == 1 and "unknown key(s) melanin" in err
     config = tmp_path / "c.yaml"
     config.write_text("optics:\n  n_epidermis: 1.4\n  colour: red\n")
-    code, _, err = run(monkeypatch, capsys, "spectrum", "--config", str(config))
+    code, _, err = run_cli("spectrum", "--config", str(config))
     assert code == 1 and "optics.colour: unknown key" in err
     csv = tmp_path / "bad.csv"
     csv.write_text("wavelength_nm,a\n400,0.3\n410,NaN\n")
-    code, _, err = run(monkeypatch, capsys, "fit-spectrum", str(csv))
+    code, _, err = run_cli("fit-spectrum", str(csv))
     assert code == 1 and "NaN" in err and "line 3" in err and err.count("\n") == 1
 
 
@@ -113,14 +103,14 @@ def test_console_script_runs(tmp_path):
     assert bad.returncode == 1 and "beta_m must be <= 1" in bad.stderr and "Traceback" not in bad.stderr
 
 
-def test_render_writes_spectral_exr_and_png(monkeypatch, capsys, tmp_path):
+def test_render_writes_spectral_exr_and_png(tmp_path, run_cli):
     maps = tmp_path / "maps.exr"
-    code, _, _ = run(monkeypatch, capsys, "example-maps", str(maps), "--size", "24", "--mm-per-pixel", "0.1")
+    code, _, _ = run_cli("example-maps", str(maps), "--size", "24", "--mm-per-pixel", "0.1")
     assert code == 0
-    code, out, err = run(monkeypatch, capsys, "render", str(maps), "--light", "window:1.6", "--bands", "450,550,650",
+    code, out, err = run_cli("render", str(maps), "--light", "window:1.6", "--bands", "450,550,650",
                          "--edit", "blood*1.5", "-o", str(tmp_path / "out" / "r"), "--device", "cpu")
     assert code == 0, err
-    from skinlayers.model.maps_io import read_spectral
+    from skinlayers.formats.exr import read_spectral
 
     image, wl, header = read_spectral(tmp_path / "out" / "r.exr")
     assert image.shape == (3, 24, 24) and wl.tolist() == [450.0, 550.0, 650.0]
@@ -138,18 +128,39 @@ def test_render_writes_spectral_exr_and_png(monkeypatch, capsys, tmp_path):
         (["--device", "tpu"], "--device"),
     ],
 )
-def test_render_bad_options(monkeypatch, capsys, tmp_path, extra, needle):
+def test_render_bad_options(tmp_path, extra, needle, run_cli):
     maps = tmp_path / "maps.exr"
-    run(monkeypatch, capsys, "example-maps", str(maps), "--size", "8", "--mm-per-pixel", "0.1")
-    code, _, err = run(monkeypatch, capsys, "render", str(maps), "-o", str(tmp_path / "x"), *extra)
+    run_cli("example-maps", str(maps), "--size", "8", "--mm-per-pixel", "0.1")
+    code, _, err = run_cli("render", str(maps), "-o", str(tmp_path / "x"), *extra)
     assert code == 1 and needle in err and err.count("\n") == 1
 
 
-def test_render_refuses_a_bad_maps_file(monkeypatch, capsys, tmp_path):
+def test_render_refuses_a_bad_maps_file(tmp_path, run_cli):
     import numpy as np
 
-    from skinlayers.model.maps_io import write_exr
+    from skinlayers.formats.exr import write_exr
 
     bad = write_exr(tmp_path / "bad.exr", {"C_m": np.zeros((4, 4), np.float32)}, {"mm_per_pixel": 0.1})
-    code, _, err = run(monkeypatch, capsys, "render", str(bad), "-o", str(tmp_path / "x"))
+    code, _, err = run_cli("render", str(bad), "-o", str(tmp_path / "x"))
     assert code == 1 and "missing channel(s) beta_m, C_he, C_bc, C_hd" in err and "Traceback" not in err
+
+
+def test_a_bug_keeps_its_traceback_and_a_user_error_is_one_line(monkeypatch, run_cli):
+    """Only the project's user errors (and OSError) become ``error: …`` with status 1: a KeyError, a
+    ValueError from a bug, propagates with its traceback instead of being shown as the user's fault."""
+    import skinlayers.model.cli as model_cli
+    from skinlayers.formats.errors import InputError
+
+    def broken(*args, **kwargs):
+        raise KeyError("band_fwhm_nm")
+
+    monkeypatch.setattr(model_cli, "_spectrum_report", broken)
+    with pytest.raises(KeyError):
+        run_cli("spectrum", "--json")
+
+    def refused(*args, **kwargs):
+        raise InputError("the value is not usable", file="x.yaml", key="optics.n_dermis")
+
+    monkeypatch.setattr(model_cli, "_spectrum_report", refused)
+    code, _, err = run_cli("spectrum", "--json")
+    assert code == 1 and err.strip() == "error: x.yaml: optics.n_dermis: the value is not usable"

@@ -17,7 +17,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from skinlayers.calibration.cube import read_cube
+from skinlayers.formats.cube import read_cube
 from skinlayers.cli import app
 from skinlayers.model import PARAMETER_BOUNDS, PARAMETER_NAMES
 from skinlayers.model.maps_io import read_maps

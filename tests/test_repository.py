@@ -18,9 +18,88 @@ def test_ci_runs_the_readme_test_command():
     assert ci == [commands[1]]
 
 
-def test_nothing_reads_shared_at_run_time():
-    for folder in ("skinlayers", "model", "acquire", "calibration", "reconstruct", "configs", "tests"):
-        for path in (ROOT / folder).rglob("*.py"):
-            if path == Path(__file__).resolve():
-                continue
-            assert "../shared" not in path.read_text() and "/shared/" not in path.read_text(), path
+# The repository cites the paper and its own docs, never a design file kept outside it. The names are
+# built here so that this file does not match itself.
+_OUTSIDE = ("PHYSICS" + ".md", "../" + "shared")
+
+
+def _tracked_text_files():
+    import subprocess
+
+    names = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    for name in names:
+        path = ROOT / name
+        if path.suffix in {".png", ".exr", ".dng"} or not path.is_file():
+            continue
+        try:
+            yield path, path.read_text()
+        except UnicodeDecodeError:
+            continue
+
+
+def test_the_repository_cites_nothing_outside_it():
+    """No file of the repository names the design file or the shared folder beside it: code, configs,
+    docs and tests stand alone (the paper is cited as DWRR08 by section and equation)."""
+    found = [f"{p.relative_to(ROOT)}: {needle}" for p, text in _tracked_text_files() for needle in _OUTSIDE if needle in text]
+    assert not found, found
+
+
+#: Each part may import only these parts (formats: the contracts; model: the physics). The face
+#: (``skinlayers/``) may import everything.
+_ALLOWED = {
+    "formats": set(),
+    "model": {"formats"},
+    "acquire": {"formats", "model", "configs"},
+    "calibration": {"formats", "configs"},
+    "reconstruct": {"formats", "model", "configs"},
+}
+_PARTS = {"formats", "model", "acquire", "calibration", "reconstruct", "configs", "skinlayers"}
+
+
+def _imported_parts(path: Path, part: str) -> set[str]:
+    """The project parts a module imports (at the top or inside functions), from its ``import`` lines."""
+    import ast
+
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level == 0 and node.module and node.module.startswith("skinlayers."):
+                found.add(node.module.split(".")[1])
+            elif node.level == 2 and node.module:
+                found.add(node.module.split(".")[0])
+            elif node.level == 2:
+                found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.Import):
+            found.update(alias.name.split(".")[1] for alias in node.names if alias.name.startswith("skinlayers."))
+    return (found & _PARTS) - {part}
+
+
+def test_parts_depend_only_downward():
+    """formats ← model ← acquire; formats ← calibration; formats, model ← reconstruct: acquire,
+    calibration and reconstruct stand side by side and none imports another."""
+    wrong = []
+    for part, allowed in _ALLOWED.items():
+        for path in (ROOT / part).rglob("*.py"):
+            extra = _imported_parts(path, part) - allowed
+            if extra:
+                wrong.append(f"{path.relative_to(ROOT)} imports {sorted(extra)}")
+    assert not wrong, wrong
+
+
+def test_the_import_rule_sees_a_wrong_import(tmp_path):
+    """The check above can fail: a module of reconstruct importing calibration is caught."""
+    bad = tmp_path / "bad.py"
+    bad.write_text("def f():\n    from ..calibration.pipeline import calibrate_session\n    from .fit import fit_cube\n")
+    assert _imported_parts(bad, "reconstruct") == {"calibration"}
+
+
+def test_fitting_a_cube_does_not_load_opencv():
+    """reconstruct reads cubes through formats, not calibration: OpenCV (calibration's) stays unloaded."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, skinlayers.reconstruct, skinlayers.reconstruct.cli, skinlayers.formats.cube, skinlayers.reconstruct.outputs;"
+        "sys.exit(1 if 'cv2' in sys.modules else 0)"
+    )
+    assert subprocess.run([sys.executable, "-c", code], cwd=ROOT).returncode == 0

@@ -10,13 +10,13 @@ from pathlib import Path
 import pytest
 
 from skinlayers.acquire.devices import CameraError, WheelError
-from skinlayers.acquire.manifest import ManifestError, file_sha256, read_manifest
+from skinlayers.formats.manifest import ManifestError, read_manifest
+from skinlayers.formats.files import file_sha256
 from skinlayers.acquire.rig import load_rig
 from skinlayers.acquire.session import AutoOperator, SessionError, plan_session, run_session
 from skinlayers.acquire.simdevices import SimulatedCamera, SimulatedWheel
 from skinlayers.acquire.simulated import SimulatedBench
 from skinlayers.acquire.simulation_settings import simulation_from_dict
-from skinlayers.cli import main
 
 BANDS = [{"wavelength_nm": 460, "filter_position": 3, "iso": 200}, {"wavelength_nm": 580, "filter_position": 7, "iso": 400}]
 GEOMETRY = {"cube_px": 32, "rectify_px": 160}
@@ -134,15 +134,6 @@ def test_resume_refuses_a_changed_frame_a_bad_name_and_another_rig(tmp_path):
         capture(folder, resume=True)
 
 
-def run_cli(monkeypatch, capsys, *args):
-    monkeypatch.setattr(sys, "argv", ["skinlayers", *args])
-    code = 0
-    try:
-        main()
-    except SystemExit as exc:
-        code = exc.code if isinstance(exc.code, int) else 1
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture
@@ -156,28 +147,28 @@ def rig_file(tmp_path):
     return path, sim
 
 
-def test_capture_command_simulated(monkeypatch, capsys, tmp_path, rig_file):
+def test_capture_command_simulated(tmp_path, rig_file, run_cli):
     rig, sim = rig_file
     out = tmp_path / "session"
     args = ["capture", "--sim", "--rig", str(rig), "--sim-settings", str(sim), "--out", str(out), "--yes",
             "--sim-wheel-time", "0", "--device", "cpu"]
-    code, stdout, err = run_cli(monkeypatch, capsys, *args)
+    code, stdout, err = run_cli(*args)
     assert code == 0, err
     assert "5 taken now" in stdout and "skinlayers calibrate" in stdout
     assert (out / "truth" / "reflectance.exr").exists() and read_manifest(out).simulated
-    code, _, err = run_cli(monkeypatch, capsys, *args)
+    code, _, err = run_cli(*args)
     assert code == 1 and err.startswith("error:") and "never overwritten" in err and "Traceback" not in err
-    code, stdout, _ = run_cli(monkeypatch, capsys, *args, "--resume")
+    code, stdout, _ = run_cli(*args, "--resume")
     assert code == 0 and "0 taken now, 5 before" in stdout
 
 
-def test_capture_command_with_a_virtual_wheel_on_a_pty(monkeypatch, capsys, tmp_path, rig_file):
+def test_capture_command_with_a_virtual_wheel_on_a_pty(tmp_path, rig_file, run_cli):
     from skinlayers.acquire.virtual_fw102c import VirtualFW102C
 
     rig, sim = rig_file
     out = tmp_path / "bench"
     with VirtualFW102C(12, half_turn_s=0.01) as wheel:
-        code, stdout, err = run_cli(monkeypatch, capsys, "capture", "--sim-camera", "--wheel-port", wheel.port,
+        code, stdout, err = run_cli("capture", "--sim-camera", "--wheel-port", wheel.port,
                                     "--rig", str(rig), "--sim-settings", str(sim), "--out", str(out), "--yes",
                                     "--device", "cpu")
         assert code == 0, err
@@ -186,10 +177,10 @@ def test_capture_command_with_a_virtual_wheel_on_a_pty(monkeypatch, capsys, tmp_
     assert read_manifest(out).status == "complete"
 
 
-def test_capture_command_refuses_what_it_cannot_do(monkeypatch, capsys, tmp_path):
-    code, _, err = run_cli(monkeypatch, capsys, "capture", "--sim-camera", "--out", str(tmp_path / "x"))
+def test_capture_command_refuses_what_it_cannot_do(tmp_path, run_cli):
+    code, _, err = run_cli("capture", "--sim-camera", "--out", str(tmp_path / "x"))
     assert code == 1 and "--wheel-port" in err
-    code, _, err = run_cli(monkeypatch, capsys, "capture", "--sim-camera", "--wheel-port", "/dev/nonexistent-port",
+    code, _, err = run_cli("capture", "--sim-camera", "--wheel-port", "/dev/nonexistent-port",
                            "--out", str(tmp_path / "y"), "--yes")
     assert code == 1 and "/dev/nonexistent-port" in err and "Traceback" not in err
     assert not (tmp_path / "y").exists()

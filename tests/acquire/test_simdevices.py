@@ -1,5 +1,5 @@
-"""The simulated wheel and camera: protocols, timing, read-back, injected faults, and a wheel at the
-wrong position showing in the picture."""
+"""The simulated wheel and camera: their base classes, timing, read-back, injected faults, and a
+wheel at the wrong position showing in the picture."""
 
 from __future__ import annotations
 
@@ -47,7 +47,7 @@ def test_moves_take_the_shorter_way_round_scaled_by_time_scale():
 def test_injected_wheel_faults_raise_and_leave_the_wheel_where_it_is():
     wheel = SimulatedWheel(12, time_scale=0.0, wrong_position={2: 5}, no_answer={3})
     wheel.move_to(3)
-    with pytest.raises(WheelError, match="asked for position 4, stopped at 5"):
+    with pytest.raises(WheelError, match="simulated wheel: asked for position 4, it reports 5"):
         wheel.move_to(4)
     assert wheel.position() == 5
     with pytest.raises(WheelError, match="no answer"):
@@ -55,7 +55,7 @@ def test_injected_wheel_faults_raise_and_leave_the_wheel_where_it_is():
     assert wheel.position() == 5
     wheel.move_to(7)
     assert wheel.position() == 7
-    with pytest.raises(WheelError, match="position 13 outside 1–12"):
+    with pytest.raises(ValueError, match="simulated wheel: position 13 outside 1–12"):
         wheel.move_to(13)
     with pytest.raises(ValueError, match="6 or 12"):
         SimulatedWheel(8)
@@ -98,9 +98,9 @@ def test_configure_reads_back_and_refuses_what_the_camera_ignores():
     camera = SimulatedCamera(make_bench(), SimulatedWheel(time_scale=0.0))
     got = camera.configure(ExposureSettings(800, 0.01, 10.0))
     assert got == ExposureSettings(800, 0.01, 10.0)
-    with pytest.raises(CameraError, match="iso 700 was not accepted; the camera reports 800"):
+    with pytest.raises(CameraError, match="simulated camera: iso asked ISO 700, the camera reports ISO 800"):
         camera.configure(ExposureSettings(700, 0.01, 10.0))
-    with pytest.raises(CameraError, match="aperture_f 10.5"):
+    with pytest.raises(CameraError, match="aperture asked f/10.5, the camera reports f/10"):
         camera.configure(ExposureSettings(800, 0.01, 10.5))
     assert camera.configure(ExposureSettings(640, 1 / 125, 11.0)) == ExposureSettings(640, 1 / 125, 11.0)
 

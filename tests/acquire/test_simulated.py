@@ -15,7 +15,8 @@ from skinlayers.acquire.scene import scene_from_dict
 from skinlayers.acquire.simulated import SimulatedBench
 from skinlayers.acquire.simulation_settings import SimulationError, simulation_from_dict
 from skinlayers.model.illumination import Light
-from skinlayers.model.maps_io import read_maps, read_spectral
+from skinlayers.model.maps_io import read_maps
+from skinlayers.formats.exr import read_spectral
 
 BANDS = [{"wavelength_nm": 550, "filter_position": 2, "iso": 200}, {"wavelength_nm": 650, "filter_position": 3, "iso": 400}]
 EXPOSURE = {550.0: ExposureSettings(200, 0.01, 10.0), 650.0: ExposureSettings(400, 0.01, 10.0)}

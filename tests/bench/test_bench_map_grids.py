@@ -80,7 +80,8 @@ def _errors(fit, session: Path, cube) -> dict:
     import torch.nn.functional as F
 
     from skinlayers.model import PARAMETER_NAMES
-    from skinlayers.model.maps_io import read_exr, read_maps
+    from skinlayers.formats.exr import read_exr
+    from skinlayers.model.maps_io import read_maps
     from skinlayers.reconstruct.checks import FLAG_BITS
 
     truth = read_maps(session / "truth" / "maps.exr")
@@ -98,7 +99,7 @@ def _errors(fit, session: Path, cube) -> dict:
 
 
 def test_node_spacing_against_accuracy_and_time():
-    from skinlayers.calibration.cube import read_cube
+    from skinlayers.formats.cube import read_cube
     from skinlayers.reconstruct.fit import fit_cube
     from skinlayers.reconstruct.settings import FitSettings
 
@@ -151,7 +152,7 @@ def test_time_against_session_size():
     """The default fit against the cube's size on the demo's sessions (64², 128², 256²; 512² with
     ``SKINLAYERS_BENCH_512=1``): CPU seconds (one thread), iterations per level, accuracy. Writes
     ``fit_sizes.csv``."""
-    from skinlayers.calibration.cube import read_cube
+    from skinlayers.formats.cube import read_cube
     from skinlayers.reconstruct.fit import fit_cube
     from skinlayers.reconstruct.settings import FitSettings
 

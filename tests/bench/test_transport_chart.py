@@ -148,7 +148,7 @@ def _single_slab() -> list[dict]:
             half = Layer(float(sa), float(ss_derm), ref.DERMIS_MM)
             rows.append(_versus_transport("semi_infinite", "", wl, "", "R", [half],
                                           ref.adding_doubling_slab(half).R_diffuse, ref.diffusion_semi_infinite(half)))
-    for sa in (0.05, 2.0):  # the points PHYSICS.md quotes (σs′ = 7 mm⁻¹)
+    for sa in (0.05, 2.0):  # the project's own check points (σs′ = 7 mm⁻¹; docs/transport.md)
         slab = Layer(sa, 7.0, ref.EPIDERMIS_MM)
         rows.append(_versus_transport("single_slab_sigma_s_7", "", "", "mean_free_path", "R", [slab],
                                       ref.adding_doubling_slab(slab).R_diffuse, ref.diffusion_slab(slab)[0]))

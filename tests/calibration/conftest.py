@@ -5,7 +5,7 @@ tilted 30° about the image x axis, integrated over each pixel by supersampling,
 PSF, vignetted and given shot and read noise, so the true corners and reflectance are known exactly.
 Under the window's light the skin darkens towards the tape as the model's renderer shows (see
 ``render_scene``). The session writes DNGs with pidng (uncompressed, 12 bit, a Bayer cell with
-per-position black levels and channel gains) and a manifest with ``acquire/manifest.py``.
+per-position black levels and channel gains) and a manifest with ``formats/manifest.py``.
 
 ``build_simulated_session`` makes a session with the acquisition's simulator itself (the default scene,
 flash jitter, motion, vignetting, lens blur, noise) at a small geometry, and its noiseless twin.
@@ -22,7 +22,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from skinlayers.acquire.manifest import Exposure, FrameRecord, Manifest, file_sha256, now_iso, write_manifest
+from skinlayers.formats.manifest import Exposure, FrameRecord, Manifest, write_manifest
+from skinlayers.formats.files import file_sha256, now_iso
 
 # (w, l1, l2) of the skin's darkening near the tape, window sides: two exponentials fitted to the model's
 # renderer (Table 2 III interior skin, 7.5 mm window, view 30°) at 430, 550 and 670 nm.
@@ -306,7 +307,7 @@ def build_simulated_session(
     from skinlayers.acquire.simdevices import SimulatedCamera, SimulatedWheel
     from skinlayers.acquire.simulated import SimulatedBench
     from skinlayers.acquire.simulation_settings import simulation_from_dict
-    from skinlayers.model.maps_io import read_exr
+    from skinlayers.formats.exr import read_exr
 
     by_nm = {b.wavelength_nm: b for b in load_rig().bands}
     rig = load_rig(bands=[by_nm[b].model_dump() for b in bands], geometry={"cube_px": cube_px, "rectify_px": rectify_px},
@@ -336,7 +337,7 @@ def predicted_noise(session: Path, band: dict, cube_px: int, rectify_px: int, ma
     variance goes through the calibration's own rectification and box filter. ``band``: the band's entry
     of ``calibration.json``; ``sensor``: the simulation's ``SimSensor``. The gray card's noise (a scale
     per band, < 0.1% at full size) is left out."""
-    from skinlayers.acquire.manifest import read_manifest
+    from skinlayers.formats.manifest import read_manifest
     from skinlayers.calibration.raw import read_raw, superpixel
     from skinlayers.calibration.window import box_filter, raw_to_superpixel_xy, rectify
 

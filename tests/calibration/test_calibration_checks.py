@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from skinlayers.acquire.manifest import file_sha256, read_manifest, write_manifest
+from skinlayers.formats.files import file_sha256
+from skinlayers.formats.manifest import read_manifest, write_manifest
 from skinlayers.calibration import (
     BandMissingError,
     CalibrationError,

@@ -8,7 +8,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from skinlayers.acquire.manifest import ManifestError
+from skinlayers.formats.manifest import ManifestError
 from skinlayers.calibration.cli import register
 from skinlayers.calibration.settings import SettingsFileError
 

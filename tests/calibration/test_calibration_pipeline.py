@@ -8,7 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from skinlayers.calibration import CalibrationSettings, calibrate_session, read_cube
+from skinlayers.calibration import CalibrationSettings, calibrate_session
+from skinlayers.formats.cube import read_cube
 
 
 @pytest.fixture(scope="module")
@@ -57,10 +58,13 @@ def test_outputs_are_complete_and_readable(baseline, synthetic_session, synth):
     assert cube.shape == (3, synth.CUBE_PX, synth.CUBE_PX)
     assert cube.wavelength_nm.tolist() == list(synthetic_session.wavelengths)
     assert cube.mm_per_pixel == pytest.approx(7.5 / synth.CUBE_PX)
-    assert set(cube.meta["window_corners_px"]) == {"430", "550", "670"}
-    assert cube.meta["camera_angle_deg"] == 30.0
-    assert cube.meta["session"] == str(synthetic_session.path.resolve())
-    assert cube.meta["settings"] == CalibrationSettings().model_dump(mode="json")
+    header = cube.header
+    assert set(header.calibration["window_corners_px"]) == {"430", "550", "670"}
+    assert header.camera_angle_deg == 30.0
+    assert header.band_fwhm_nm == [10.0, 10.0, 10.0]  # the rig's filters
+    assert header.provenance.session == str(synthetic_session.path.resolve())
+    assert header.provenance.made_by == "skinlayers calibrate"
+    assert header.calibration["settings"] == CalibrationSettings().model_dump(mode="json")
     report = json.loads(result.report_path.read_text())
     assert set(report["timings_s"]) >= {"verify", "decode", "corrections", "window", "rectify", "align", "write", "total"}
     for key in ("exposure", "flash_factor", "alignment_shift_px", "snr", "saturated_fraction", "window_corners_px"):
@@ -139,3 +143,35 @@ def test_alignment_brings_back_skin_that_slid_under_the_tape(synth, tmp_path):
         return float(np.sqrt(np.mean((result.cube.reflectance.numpy()[2] - session.truth[2])[inner] ** 2)))
 
     assert rms(aligned) < 0.65 * rms(as_cut)  # measured 0.0060 against 0.0110 (0.0048 with no slide)
+
+
+def test_the_rigs_filter_widths_reach_the_fit(session_copy, tmp_path):
+    """A rig with 12-nm filters: calibration writes each band's width and the camera angle into the cube's
+    header, and the fit's band model takes them from there (not a 10-nm default)."""
+    import math
+
+    import torch
+
+    from skinlayers.formats.manifest import read_manifest, write_manifest
+    from skinlayers.model.renderer import SkinRenderer
+    from skinlayers.reconstruct.fit import band_fwhm_of, view_angle_of
+    from skinlayers.reconstruct.problem import LevelProblem
+    from skinlayers.reconstruct.settings import FitSettings
+    from skinlayers.reconstruct.unknowns import Level
+
+    manifest = read_manifest(session_copy.path)
+    rig = {**manifest.rig, "bands": [{**b, "fwhm_nm": 12.0} for b in manifest.rig["bands"]], "camera": {**manifest.rig["camera"], "angle_deg": 25.0}}
+    write_manifest(session_copy.path, manifest.model_copy(update={"rig": rig}))
+    cube = read_cube(calibrate_session(session_copy.path, tmp_path / "cal").cube_path)
+    assert cube.header.band_fwhm_nm == [12.0, 12.0, 12.0] and cube.header.camera_angle_deg == 25.0
+    fwhm, source = band_fwhm_of(cube, FitSettings())
+    assert fwhm.tolist() == [12.0, 12.0, 12.0] and source == "cube header"
+    assert view_angle_of(cube, FitSettings()) == (25.0, "cube header")
+    level = Level(cube.reflectance, cube.mask, cube.mm_per_pixel)
+    problem = LevelProblem(SkinRenderer(), level, cube.wavelength_nm, torch.ones(3, dtype=torch.bool), view_angle_deg=25.0,
+                           border_mm=0.0, band_fwhm_nm=fwhm)
+    sigma = 12.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+    nodes = problem.band_nodes_nm.reshape(3, 3) - cube.wavelength_nm[:, None]
+    assert torch.allclose(nodes[:, 2], torch.full((3,), math.sqrt(3.0) * sigma, dtype=torch.float64))
+    # a user's setting replaces the header's width for every band
+    assert band_fwhm_of(cube, FitSettings(band_fwhm_nm=9.0))[0].tolist() == [9.0, 9.0, 9.0]

@@ -63,7 +63,7 @@ def test_gray_card_level_refuses_a_clipped_or_dark_card():
 
 
 def test_band_factors_follow_the_switches():
-    from skinlayers.acquire.manifest import Exposure
+    from skinlayers.formats.manifest import Exposure
     from skinlayers.acquire.rig import load_rig
 
     rig = load_rig(targets={"spectralon_reflectance": {430: 0.98, 670: 0.99}})

@@ -18,7 +18,8 @@ import cv2
 import numpy as np
 import pytest
 
-from skinlayers.acquire.manifest import ManifestError, file_sha256, read_manifest, write_manifest
+from skinlayers.formats.manifest import ManifestError, read_manifest, write_manifest
+from skinlayers.formats.files import file_sha256
 from skinlayers.calibration import (
     BandMissingError,
     CalibrationError,

@@ -1,4 +1,5 @@
-"""Sums of Gaussians (PHYSICS.md §3): the non-negative fit and the closed-form transforms.
+"""Sums of Gaussians (DWRR08 §3, Eq. 4; §4.3, Eq. 9; §4.5; after d'Eon et al. 2007): the non-negative
+fit and the closed-form transforms.
 
 References: exact sums of the basis Gaussians (the fit must give their weights back), the Gaussian's
 unit plane integral and its 2D Fourier transform exp(-v k²/2), both checked by numerical integrals

@@ -1,6 +1,7 @@
-"""Dipole and multipole profiles of one layer (PHYSICS.md §2) against independent references.
+"""Dipole and multipole profiles of one layer (Jensen et al. 2001; Donner & Jensen 2005) against
+independent references.
 
-Every reference here is computed in this file from the formulas of PHYSICS.md §2 or from a numerical
+Every reference here is computed in this file from the formulas of those two papers or from a numerical
 integral of the module's output: plane integrals of the real-space profiles against the closed-form
 totals, numerical Hankel transforms against the closed-form transforms, an exact-Fresnel hemispherical
 integral against the Egan–Hilgeman fit, an energy balance with an absorbed energy built from the
@@ -49,7 +50,8 @@ def plane_integral(profile: torch.Tensor, u: torch.Tensor, r: torch.Tensor) -> t
 
 
 def egan_hilgeman(eta: float) -> float:
-    """F_dr as written in PHYSICS.md §2 (typed again here, not taken from the module)."""
+    """F_dr, Egan & Hilgeman's fit as used by Jensen et al. 2001 and Donner & Jensen 2005 (typed again
+    here, not taken from the module)."""
     if eta >= 1.0:
         return -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
     return -0.4399 + 0.7099 / eta - 0.3319 / eta**2 + 0.0636 / eta**3
@@ -83,7 +85,8 @@ def exact_internal_diffuse_reflectance(eta: float) -> float:
 
 def slab_constants(sigma_a: float, sigma_s: float, thickness: float, eta_top: float, eta_bottom: float,
                    source_depth: str = "mean_free_path"):
-    """α', σtr, D, ℓ, z_b1, z_b2 and the period L = d + z_b1 + z_b2 of PHYSICS.md §2, in float64."""
+    """α', σtr, D, ℓ, z_b1, z_b2 and the period L = d + z_b1 + z_b2 of the multipole (Donner & Jensen 2005),
+    in float64."""
     sigma_t = sigma_a + sigma_s
     ell = 1.0 / sigma_t
     if source_depth == "capped":
@@ -96,7 +99,8 @@ def slab_constants(sigma_a: float, sigma_s: float, thickness: float, eta_top: fl
 
 
 def source_positions(c: dict, n_pairs: int) -> tuple[np.ndarray, np.ndarray]:
-    """z_r,i = 2iL + ℓ, z_v,i = 2iL − ℓ − 2z_b1 for i = −n..n (PHYSICS.md §2)."""
+    """z_r,i = 2iL + ℓ, z_v,i = 2iL − ℓ − 2z_b1 for i = −n..n: the multipole's dipole pairs (Donner &
+    Jensen 2005)."""
     i = np.arange(-n_pairs, n_pairs + 1)
     return 2 * i * c["period"] + c["ell"], 2 * i * c["period"] - c["ell"] - 2 * c["z1"]
 

@@ -25,8 +25,9 @@ def renderer(tmp_path_factory) -> SkinRenderer:
 
 
 def fourier_reference(renderer: SkinRenderer, row: dict, irradiance: torch.Tensor, mm: float, method: str) -> torch.Tensor:
-    """Exitance by the Fourier-domain combination of the layers (PHYSICS.md §2) applied to an
-    irradiance image: FFT(E) · R̂₁₂(|k|) · (pixel box)² per axis, entering light F_t E. ``(L, H, W)``."""
+    """Exitance by the Fourier-domain combination of the layers (DWRR08 §3, Eq. 3; Donner & Jensen 2005)
+    applied to an irradiance image: FFT(E) · R̂₁₂(|k|) · (pixel box)² per axis, entering light F_t E.
+    ``(L, H, W)``."""
     h, w = irradiance.shape
     n = 1 << int(math.ceil(math.log2(max(h, w) * 2)))
     ky = 2 * math.pi * torch.fft.fftfreq(n, d=mm, dtype=F64)

@@ -48,7 +48,7 @@ def test_baseline_and_scattering():
     assert float(s.baseline[3]) == pytest.approx(0.0244 + 8.53 * math.exp(-(500 - 154) / 66.2), rel=1e-12)
     sigma_400 = 14.74 * 400**-0.22 + 2.2e11 * 400**-4
     assert float(s.scattering_epidermis[1]) == pytest.approx(sigma_400, rel=1e-12)
-    assert float(s.scattering_epidermis[1]) == pytest.approx(12.5, rel=0.01)  # PHYSICS.md §2
+    assert float(s.scattering_epidermis[1]) == pytest.approx(12.5, rel=0.01)  # Eq. 13 (DWRR08 §5.1) at 400 nm
     assert float(s.scattering_epidermis[7]) == pytest.approx(4.4, rel=0.01)
     torch.testing.assert_close(s.scattering_dermis, 0.5 * s.scattering_epidermis)
 

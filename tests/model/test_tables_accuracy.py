@@ -1,5 +1,5 @@
-"""Gaussian lookup tables (PHYSICS.md §3): fit accuracy over skin's whole σa range, interpolation,
-totals against the exact model, the disk cache and the lookup mechanics.
+"""Gaussian lookup tables (DWRR08 §4.5; docs/model.md, "The Gaussian basis"): fit accuracy over skin's
+whole σa range, interpolation, totals against the exact model, the disk cache and the lookup mechanics.
 
 Acceptance (the issue): "Gaussian fits: plane-integrated energy within 0.5% and relative plane-L2 error
 within 2% over the whole σa range of skin (every wavelength 400–700 nm, both layers); interpolating the

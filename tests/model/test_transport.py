@@ -1,4 +1,5 @@
-"""The diffusion model's error against radiative transport must not grow (PHYSICS.md §2, docs/transport.md).
+"""The diffusion model's error (DWRR08 §3; Donner & Jensen 2005) against radiative transport must not grow
+(docs/transport.md).
 
 Two parts:
 

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from skinlayers.acquire.scene import SkinScene, scene_from_dict
-from skinlayers.calibration.cube import Cube
+from skinlayers.formats.cube import Cube, CubeHeader
 from skinlayers.model import ModelSettings
 from skinlayers.model.illumination import Light
 from skinlayers.model.maps import SkinMaps
@@ -110,8 +110,9 @@ def make_cube(
     mask = torch.zeros(size_px, size_px, dtype=torch.bool)
     mask[1:-1, 1:-1] = True
     mm = WINDOW_MM / size_px
-    cube = Cube(measured, torch.tensor(bands_nm, dtype=torch.float64), mask, mm,
-                {"camera_angle_deg": view_angle_deg, "band_fwhm_nm": BAND_FWHM_NM, "source": f"synthetic seed {seed}"})
+    header = CubeHeader(wavelengths_nm=[float(b) for b in bands_nm], band_fwhm_nm=[BAND_FWHM_NM] * len(bands_nm),
+                        camera_angle_deg=view_angle_deg, mm_per_pixel=mm, provenance={"made_by": f"synthetic cube, seed {seed}"})
+    cube = Cube(measured, mask, header)
     crop = lambda v: F.avg_pool2d(v[:, None, margin:margin + n_fine, margin:margin + n_fine], fine)[:, 0]  # noqa: E731
     truth = SkinMaps(*(crop(getattr(maps, n)) for n in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")), mm_per_pixel=mm)
     axis = (torch.arange(total, dtype=torch.float64) - (total - 1) / 2.0) * mm_fine

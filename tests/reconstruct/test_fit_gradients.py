@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from skinlayers.model import TABLE2, PARAMETER_NAMES
+from skinlayers.model import N_PARAMS, PARAMETER_NAMES, TABLE2
 from skinlayers.model.renderer import SkinRenderer
 from skinlayers.reconstruct.gauss_newton import solve_step
 from skinlayers.reconstruct.problem import LevelProblem
@@ -74,17 +74,17 @@ def test_evaluate_gradient_is_the_objective_gradient(problem):
     up = problem.evaluate(x0 + h * direction, torch.tensor(0.0, dtype=torch.float64)).loss
     down = problem.evaluate(x0 - h * direction, torch.tensor(0.0, dtype=torch.float64)).loss
     fd = (up - down) / (2 * h)
-    analytic = float((ev.grad * problem.at_pixels(direction).T).sum())
+    analytic = float((ev.grad * problem.at_pixels(direction)).sum())
     assert abs(fd - analytic) <= 1e-5 * max(abs(fd), 1e-8)
 
 
 def test_homogeneous_jacobian_matches_finite_differences(problem):
-    x = _x0()[:, 2, :4].clone()  # (5, 4) pixels
+    x = _x0()[:, 2, :4].T.clone()  # (4 pixels, N_PARAMS)
     value, jac = problem.homogeneous_jacobian(x)
     h = 1e-6
-    for k in range(5):
+    for k in range(N_PARAMS):
         dx = torch.zeros_like(x)
-        dx[k] = h
+        dx[:, k] = h
         up, _ = problem.homogeneous_jacobian(x + dx)
         down, _ = problem.homogeneous_jacobian(x - dx)
         fd = (up - down) / (2 * h)
@@ -103,7 +103,7 @@ def test_uniform_light_limit_matches_the_renderer():
     image = renderer.render(maps, Light("uniform"), WL, view_angle_deg=30.0).image[0, :, 4, 4]
     level = Level(torch.zeros(3, 8, 8, dtype=torch.float64), torch.ones(8, 8, dtype=torch.bool), 0.1)
     prob = LevelProblem(renderer, level, WL, torch.ones(3, dtype=torch.bool), view_angle_deg=30.0, border_mm=0.0)
-    x = from_params(torch.tensor([params[n] for n in PARAMETER_NAMES], dtype=torch.float64).view(5, 1))
+    x = from_params(torch.tensor([params[n] for n in PARAMETER_NAMES], dtype=torch.float64).view(N_PARAMS, 1)).T
     value, _ = prob.homogeneous_jacobian(x)
     assert torch.allclose(value[0], image, rtol=2e-3)
 

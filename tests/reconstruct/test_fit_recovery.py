@@ -13,7 +13,9 @@ import math
 import pytest
 import torch
 
-from skinlayers.calibration.cube import Cube
+from dataclasses import replace
+
+from skinlayers.formats.cube import Cube
 from skinlayers.model import PARAMETER_BOUNDS, PARAMETER_NAMES
 from skinlayers.reconstruct.checks import FLAG_BITS
 from skinlayers.reconstruct.fit import fit_cube
@@ -99,8 +101,7 @@ def test_uncertainty_is_the_noise_share_of_the_error(small_cube, small_fit, smal
     """σ describes what the noise does: |fit − fit of the noise-free cube| / σ has a median near 0.67
     (Gaussian). Against the truth the errors are larger, by what maps on nodes cannot follow (measured
     on this cube: C_m 2.6σ, β_m 3.3σ); the accuracy tests bound that."""
-    clean = Cube(small_cube.clean, small_cube.cube.wavelength_nm, small_cube.cube.mask, small_cube.cube.mm_per_pixel,
-                 dict(small_cube.cube.meta or {}))
+    clean = replace(small_cube.cube, reflectance=small_cube.clean)
     noiseless = fit_cube(clean, FitSettings(**small_fit_settings))
     keep = small_cube.cube.mask & ~small_cube.vein
     z = _median_z(small_fit, noiseless.maps, keep)
@@ -124,7 +125,7 @@ def test_fair_skin_at_full_camera_noise(synthetic):
     err = _errors(fit, syn)
     assert err["C_m"] < 0.10 and err["C_hd"] < 0.10 and err["C_he"] < 0.25 and err["beta_m"] < 0.10, err
     assert _residual_rms(fit, syn) <= 1.2 * _noise_rms(syn)
-    clean = Cube(syn.clean, syn.cube.wavelength_nm, syn.cube.mask, syn.cube.mm_per_pixel, dict(syn.cube.meta or {}))
+    clean = replace(syn.cube, reflectance=syn.clean)
     z = _median_z(fit, fit_cube(clean, FitSettings()).maps, syn.cube.mask & ~syn.vein)
     assert all(0.2 < v < 2.0 for v in z.values()), z
 

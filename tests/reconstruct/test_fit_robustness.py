@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from skinlayers.calibration.cube import Cube
+from skinlayers.formats.cube import Cube
 from skinlayers.model import PARAMETER_NAMES
 from skinlayers.reconstruct.checks import FLAG_BITS
 from skinlayers.reconstruct.fit import fit_cube
@@ -24,7 +24,7 @@ def _flag(fit, name):
 
 
 def _damaged(cube: Cube, reflectance: torch.Tensor, mask: torch.Tensor | None = None) -> Cube:
-    return Cube(reflectance, cube.wavelength_nm, cube.mask if mask is None else mask, cube.mm_per_pixel, dict(cube.meta))
+    return Cube(reflectance, cube.mask if mask is None else mask, cube.header)
 
 
 @pytest.fixture(scope="module")

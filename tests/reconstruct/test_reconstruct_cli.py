@@ -10,10 +10,11 @@ import torch
 import yaml
 from typer.testing import CliRunner
 
-from skinlayers.calibration.cube import write_cube
+from skinlayers.formats.cube import write_cube
 from skinlayers.cli import app
 from skinlayers.model import PARAMETER_NAMES
-from skinlayers.model.maps_io import read_exr, read_maps
+from skinlayers.formats.exr import read_exr
+from skinlayers.model.maps_io import read_maps
 from skinlayers.reconstruct.settings import FitSettings, FitSettingsError, load_fit_settings
 
 runner = CliRunner()
@@ -72,7 +73,8 @@ def test_reconstruct_a_session_writes_every_output(run, session):
     assert summary["settings"]["high_residual_factor"] == 3.5
     assert set(summary["parameters"]) == set(PARAMETER_NAMES)
     assert "p5" in summary["parameters"]["C_m"] and "p95" in summary["parameters"]["C_m"]
-    assert summary["view_angle_source"] == "cube meta camera_angle_deg"
+    assert summary["view_angle_source"] == "cube header"
+    assert summary["band_fwhm_source"] == "cube header" and summary["band_fwhm_nm"] == [10.0] * 9
     assert abs(sum(summary["pca"]["explained_ratio"]) - 1.0) < 1e-9
     resolved = yaml.safe_load((out / "fit_settings.yaml").read_text())
     assert FitSettings.model_validate(resolved) == FitSettings(high_residual_factor=3.5, map_cell_mm={"C_bc": 0})

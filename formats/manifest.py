@@ -13,43 +13,32 @@ path, ``..``, a drive or a separator) is refused wherever a manifest is read.
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
-import tempfile
-from datetime import datetime, timezone
-from pathlib import Path, PurePosixPath, PureWindowsPath
+from pathlib import Path
 from typing import Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from ..model.settings import format_validation_error
+from .errors import InputError
+from .files import atomic_write, now_iso, safe_member
+from .rig import RigConfig, rig_from_dict
+from .settings import format_validation_error
 
-__all__ = ["MANIFEST_NAME", "SCHEMA_VERSION", "FrameRecord", "Manifest", "ManifestError", "file_sha256",
-           "read_manifest", "safe_member", "write_manifest"]
+__all__ = ["MANIFEST_NAME", "SCHEMA_VERSION", "Exposure", "FrameRecord", "Manifest", "ManifestError", "read_manifest",
+           "write_manifest"]
 
 MANIFEST_NAME = "manifest.json"
 SCHEMA_VERSION = 1
 Role = Literal["dark", "reference", "skin"]
 
 
-class ManifestError(ValueError):
+class ManifestError(InputError):
     """A manifest that cannot be used; the message names the file and the problem."""
 
 
-def safe_member(name: str) -> str:
-    """``name`` if it is a plain file name inside a folder (optionally in sub-folders), else ValueError."""
-    if not isinstance(name, str) or not name or "\x00" in name:
-        raise ValueError(f"file name {name!r} is empty or not text")
-    if "\\" in name or PureWindowsPath(name).drive or PurePosixPath(name).is_absolute():
-        raise ValueError(f"file name {name!r} would leave the session folder (absolute path or drive)")
-    parts = PurePosixPath(name).parts
-    if any(p in ("..", ".", "") for p in parts):
-        raise ValueError(f"file name {name!r} would leave the session folder ('..' or '.')")
-    return name
-
-
 class Exposure(BaseModel):
+    """A frame's exposure as the camera reported it."""
+
     model_config = ConfigDict(extra="forbid")
     iso: int = Field(..., gt=0)
     shutter_s: float = Field(..., gt=0)
@@ -110,23 +99,9 @@ class Manifest(BaseModel):
                 return f
         return None
 
-    def rig_config(self):
+    def rig_config(self) -> RigConfig:
         """The rig as a validated ``RigConfig``."""
-        from .rig import rig_from_dict  # noqa: PLC0415
-
         return rig_from_dict(self.rig, "manifest rig")
-
-
-def now_iso() -> str:
-    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
-
-
-def file_sha256(path: str | Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(chunk), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def write_manifest(session: str | Path, manifest: Manifest) -> Path:
@@ -135,25 +110,6 @@ def write_manifest(session: str | Path, manifest: Manifest) -> Path:
     path = session / MANIFEST_NAME
     text = json.dumps(manifest.model_dump(mode="json"), indent=2) + "\n"
     return atomic_write(path, text.encode(), prefix=".manifest-")
-
-
-def atomic_write(path: str | Path, data: bytes, prefix: str = ".tmp-") -> Path:
-    """Write ``data`` to ``path`` atomically: a temporary file in the same folder, flushed to disk, then
-    renamed over ``path``; readable by all (0644: a session is shared data)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=prefix, suffix=".tmp")
-    os.fchmod(fd, 0o644)  # mkstemp makes it private
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
 
 
 def read_manifest(session: str | Path) -> Manifest:
