@@ -254,7 +254,7 @@ def multipole_hankel(
     """
     k = torch.as_tensor(k_per_mm)
     if not math.isfinite(thickness_mm):
-        opt = SlabOptics.build(sigma_a_per_mm, sigma_s_prime_per_mm, math.inf, eta_top, eta_bottom)
+        SlabOptics.build(sigma_a_per_mm, sigma_s_prime_per_mm, math.inf, eta_top, eta_bottom)  # refuses bad coefficients
         r_plus = dipole_hankel(k, sigma_a_per_mm, sigma_s_prime_per_mm, eta_top)
         zero = torch.zeros_like(r_plus)
         return LayerProfiles(r_plus, zero, zero, zero)

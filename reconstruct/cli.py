@@ -14,7 +14,6 @@ import typer
 from ..formats.cube import CUBE_NAME, calibrated_dir
 from ..formats.errors import InputError
 from ..model import PARAMETER_NAMES, SkinModel, load_model_settings
-from ..model.cli import parse_wavelengths
 from .spectra_io import read_spectra_csv
 from .spectrum_fit import fit_spectra
 

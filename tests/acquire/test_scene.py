@@ -129,18 +129,6 @@ def test_bad_scene_values_name_the_key(data, match):
         scene_from_dict(data, "my.yaml")
 
 
-def test_bad_scene_files_name_the_file(tmp_path):
-    with pytest.raises(SceneError, match="nope.yaml: cannot read"):
-        load_scene(tmp_path / "nope.yaml")
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("freckles: [1, 2\n")
-    with pytest.raises(SceneError, match="bad.yaml: not valid YAML"):
-        load_scene(bad)
-    bad.write_text("- 1\n")
-    with pytest.raises(SceneError, match="bad.yaml: expected a mapping"):
-        load_scene(bad)
-
-
 def test_bad_grid_is_refused():
     with pytest.raises(ValueError, match="mm_per_pixel > 0"):
         SkinScene().maps(0.0, 10, WL)

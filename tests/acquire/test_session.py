@@ -4,7 +4,6 @@ never overwriting, and the `capture` command (simulated, and a virtual wheel on 
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest

@@ -28,8 +28,6 @@ def test_file_and_overrides(tmp_path):
         ("interpolation: nearest", "interpolation"),
         ("saturation_margin: -1", "saturation_margin"),
         ("gray_card_roi_px: [10, 10, 5, 20]", "gray_card_roi_px"),
-        ("- a list", "mapping"),
-        ("a: [", "not valid YAML"),
     ],
 )
 def test_bad_files_name_the_key(tmp_path, text, match):
@@ -37,8 +35,6 @@ def test_bad_files_name_the_key(tmp_path, text, match):
     path.write_text(text)
     with pytest.raises(SettingsFileError, match=match):
         load_calibration_settings(path)
-    with pytest.raises(SettingsFileError, match="cannot read"):
-        load_calibration_settings(tmp_path / "absent.yaml")
 
 
 def test_gray_card_box_in_superpixels():

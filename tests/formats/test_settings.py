@@ -78,3 +78,42 @@ def test_every_parts_errors_share_the_base():
     assert issubclass(DeviceError, SkinlayersError) and issubclass(DeviceError, RuntimeError)
     assert issubclass(FrameMissingError, SkinlayersError) and issubclass(FrameMissingError, FileNotFoundError)
     assert str(SkinlayersError("no such band", file="rig.yaml", key="bands")) == "rig.yaml: bands: no such band"
+
+
+def _loaders():
+    from skinlayers.acquire.rig import RigError, load_rig
+    from skinlayers.acquire.scene import SceneError, load_scene
+    from skinlayers.acquire.simulation_settings import SimulationError, load_simulation_settings
+    from skinlayers.calibration import SettingsFileError, load_calibration_settings
+    from skinlayers.model import SettingsError as ModelSettingsError
+    from skinlayers.model import load_model_settings
+    from skinlayers.reconstruct import FitSettingsError, load_fit_settings
+
+    return {
+        "model": (load_model_settings, ModelSettingsError), "rig": (load_rig, RigError), "scene": (load_scene, SceneError),
+        "simulation": (load_simulation_settings, SimulationError), "calibration": (load_calibration_settings, SettingsFileError),
+        "fit": (load_fit_settings, FitSettingsError),
+    }
+
+
+@pytest.mark.parametrize("part", ["model", "rig", "scene", "simulation", "calibration", "fit"])
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        (None, "cannot read"),
+        ("key: [unclosed\n", "not valid YAML"),
+        ("- a\n- b\n", "expected a mapping"),
+        ("no_such_key: 1\n", "no_such_key: unknown key"),
+    ],
+)
+def test_every_settings_file_is_read_by_the_one_loader(tmp_path, part, text, needle):
+    """Each part's settings file: unreadable, not YAML, not a mapping or an unknown key is refused by
+    the part's own error class, in one line naming the file."""
+    load, error = _loaders()[part]
+    path = tmp_path / f"{part}.yaml"
+    if text is not None:
+        path.write_text(text)
+    with pytest.raises(error) as err:
+        load(path)
+    message = str(err.value)
+    assert needle in message and str(path) in message and "\n" not in message

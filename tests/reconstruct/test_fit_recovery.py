@@ -15,7 +15,6 @@ import torch
 
 from dataclasses import replace
 
-from skinlayers.formats.cube import Cube
 from skinlayers.model import PARAMETER_BOUNDS, PARAMETER_NAMES
 from skinlayers.reconstruct.checks import FLAG_BITS
 from skinlayers.reconstruct.fit import fit_cube
