@@ -86,10 +86,13 @@ def _session_rig(out: Path, sim: bool, sim_camera: bool, rig_file: Optional[Path
     """The rig to capture with (a resumed session's own, else the file's with the options applied) and
     whether everything is simulated; refuses options that do not go together."""
     from ..formats.manifest import read_manifest  # noqa: PLC0415
+    from ..formats.outputs import refuse_inside_session  # noqa: PLC0415
     from .rig import load_rig  # noqa: PLC0415
 
     if sim and sim_camera:
         raise InputError("choose one of --sim and --sim-camera")
+    if not resume:
+        refuse_inside_session(out.parent, "session")
     if sim_camera and not (wheel_port or rig_file):
         raise InputError("--sim-camera needs the wheel's serial port: --wheel-port PORT (or a --rig that names it)")
     if not resume and out.exists() and (not out.is_dir() or any(out.iterdir())):
@@ -139,6 +142,7 @@ def example_maps(
     mm_per_pixel: float = typer.Option(7.5 / 256, "--mm-per-pixel", help="Pixel size in mm."),
     seed: int = typer.Option(0, "--seed", help="Seed of the scene's variation, freckles, scar, veins and hairs."),
     scene: Optional[Path] = typer.Option(None, "--scene", help="Scene YAML (default: configs/scene.yaml)."),
+    force: bool = typer.Option(False, "--force", help="Replace OUT if it exists."),
 ) -> None:
     """Write a synthetic patch — the simulator's scene: smooth variation, freckles, a scar, veins, hairs.
 
@@ -146,16 +150,20 @@ def example_maps(
     """
     import torch  # noqa: PLC0415
 
+    from ..formats.maps import MAX_MM_PER_PIXEL, MIN_MM_PER_PIXEL  # noqa: PLC0415
+    from ..formats.outputs import check_outputs, write_file  # noqa: PLC0415
     from ..model.maps_io import write_maps  # noqa: PLC0415
     from .scene import SkinScene, load_scene  # noqa: PLC0415
 
     if not 8 <= size <= 4096:
         raise InputError("--size must be 8–4096 pixels")
-    if not 0 < mm_per_pixel < 10:
-        raise InputError("--mm-per-pixel must be a pixel size in mm (0–10)")
+    if not MIN_MM_PER_PIXEL <= mm_per_pixel < MAX_MM_PER_PIXEL:
+        raise InputError(f"--mm-per-pixel must be a pixel size in mm ({MIN_MM_PER_PIXEL:g}–{MAX_MM_PER_PIXEL:g})")
+    check_outputs(out.parent, [out.name], force=force, what="maps")
     wavelengths = torch.arange(400.0, 701.0, 25.0, dtype=torch.float64)  # veins and hairs, interpolated between
     maps = SkinScene(load_scene(scene), seed).maps(mm_per_pixel, size, wavelengths)
-    write_maps(out, maps, attributes={"software": "skinlayers example-maps", "seed": str(seed)})
+    write_file(out, lambda path: write_maps(path, maps, attributes={"software": "skinlayers example-maps", "seed": str(seed)}),
+               force=force, what="maps")
     typer.echo(f"wrote {out}: {size}×{size} px, {size * mm_per_pixel:.2f} mm across")
 
 

@@ -120,7 +120,7 @@ class HairsConfig(Strict):
 class SceneConfig(Strict):
     """A synthetic skin patch (``configs/scene.yaml`` is the embedded default)."""
 
-    extent_mm: float = Field(8.5, gt=0, description="Side of the square, centred on the window, where features lie.")
+    extent_mm: float = Field(8.5, gt=0, le=100, description="Side of the square, centred on the window, where features lie.")
     base: BaseSkin = BaseSkin()
     variation: VariationConfig = VariationConfig()
     freckles: FrecklesConfig = FrecklesConfig()

@@ -25,6 +25,7 @@ from typing import Callable, Optional, Protocol
 from .devices import Camera, ExposureSettings, FilterWheel
 from ..formats.errors import InputError
 from ..formats.files import file_sha256, now_iso
+from ..formats.outputs import inside_session
 from ..formats.manifest import FrameRecord, Manifest, ManifestError, read_manifest, write_manifest
 from .rig import RigConfig
 
@@ -127,6 +128,9 @@ def _start(folder: Path, rig: RigConfig, resume: bool, info: dict) -> Manifest:
     if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
         raise SessionError(f"{folder}: exists and is not empty; a session is never overwritten "
                            "(choose a new folder, or --resume to continue the session in it)")
+    outer = inside_session(folder.parent)
+    if outer is not None:
+        raise SessionError(f"{folder}: lies inside the session {outer}, which is never written to; choose a folder outside it")
     folder.mkdir(parents=True, exist_ok=True)
     manifest = Manifest(rig=rig.model_dump(mode="json"), **info)
     write_manifest(folder, manifest)

@@ -8,7 +8,7 @@ it into pictures.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
 
 from pydantic import Field, model_validator
 
@@ -23,9 +23,11 @@ class SimulationError(SettingsError):
 
 
 class SimCamera(Strict):
-    distance_mm: float = Field(270.0, gt=10, description="Centre of projection to the window centre (mm).")
-    window_span_px: Optional[int] = Field(None, ge=16, description="Raw px across the window's centre line; None: 2 × rectify_px.")
-    field_of_view_mm: tuple[float, float] = Field((12.0, 10.0), description="Skin-plane width × height the sensor covers (mm).")
+    distance_mm: float = Field(270.0, gt=10, le=10000, description="Centre of projection to the window centre (mm).")
+    window_span_px: Optional[int] = Field(None, ge=16, le=8192, description="Raw px across the window's centre line; None: 2 × rectify_px.")
+    field_of_view_mm: tuple[Annotated[float, Field(gt=0, le=200)], Annotated[float, Field(gt=0, le=200)]] = Field(
+        (12.0, 10.0), description="Skin-plane width × height the sensor covers (mm)."
+    )
     psf_sigma_px: float = Field(1.0, ge=0, le=10, description="Gaussian lens blur (raw px).")
     vignetting: float = Field(0.30, ge=0, lt=1, description="Fall-off at the sensor corners (0.3: 30%).")
     supersample: int = Field(2, ge=1, le=8, description="Samples per raw pixel per axis in the warp.")
@@ -51,7 +53,7 @@ class SimFlash(Strict):
 
 
 class SimMotion(Strict):
-    max_shift_px: float = Field(10.0, ge=0, description="Largest subject shift between frames (raw px at the window centre).")
+    max_shift_px: float = Field(10.0, ge=0, le=1000, description="Largest subject shift between frames (raw px at the window centre).")
     max_rotation_deg: float = Field(0.2, ge=0, le=10, description="Largest subject rotation about the window centre.")
 
 
@@ -89,12 +91,12 @@ class SimSensor(Strict):
     black_level: tuple[int, int, int, int] = Field(
         (1024, 1024, 1024, 1024), description="Black level (DN) at the RGGB positions R, G (R row), G (B row), B."
     )
-    full_well_e: float = Field(25000.0, gt=0, description="Electrons a pixel holds.")
+    full_well_e: float = Field(25000.0, gt=0, le=1e12, description="Electrons a pixel holds.")
     e_per_dn_iso100: float = Field(1.6, gt=0, description="Electrons per DN at ISO 100; ISO n divides it by n/100.")
-    read_noise_e: float = Field(2.5, ge=0, description="Read noise before the gain (electrons, rms).")
-    read_noise_dn: float = Field(1.0, ge=0, description="Read noise after the gain (DN, rms).")
+    read_noise_e: float = Field(2.5, ge=0, le=1e4, description="Read noise before the gain (electrons, rms).")
+    read_noise_dn: float = Field(1.0, ge=0, le=1e4, description="Read noise after the gain (DN, rms).")
     white_electrons: Optional[float] = Field(
-        None, gt=0,
+        None, gt=0, le=1e12,
         description=(
             "Flash power, as the electrons of a green pixel at the image centre from a white diffuser through a 10-nm "
             "filter at 550 nm at f/10. None: set as an operator sets the flash, so that the brightest reference "
@@ -139,8 +141,8 @@ class SimSensor(Strict):
 
 class SimTruth(Strict):
     oversample: int = Field(2, ge=2, le=8, description="Truth grid = cube grid / oversample (at least 2× finer).")
-    margin_mm: float = Field(0.5, ge=0.05, description="Skin mapped beyond the window on every side (mm).")
-    border_mm: float = Field(3.0, ge=0, description="Renderer border beyond the maps for the window light (mm).")
+    margin_mm: float = Field(0.5, ge=0.05, le=20, description="Skin mapped beyond the window on every side (mm).")
+    border_mm: float = Field(3.0, ge=0, le=20, description="Renderer border beyond the maps for the window light (mm).")
     blur: Literal["fft", "pyramid", "chain"] = Field(
         "pyramid", description="Renderer blur strategy for the truth (pyramid: its agreement with fft, docs/renderer.md)."
     )

@@ -40,6 +40,8 @@ import torch
 from ..formats.cube import CUBE_NAME, Cube, CubeHeader, Provenance, calibrated_dir, write_cube
 from ..formats.files import atomic_write, now_iso
 from ..formats.manifest import read_manifest
+from ..formats.outputs import Staging, check_outputs, claim_outputs
+from ..formats.resources import require_memory
 from ..formats.rig import RigConfig
 from ..formats.version import software_version
 from .align import align_bands, apply_alignment
@@ -57,6 +59,8 @@ ProgressFn = Callable[[int, int, str], None]
 """``progress(done, total, message)``, called after each step."""
 
 REPORT_NAME, SHEET_NAME = "calibration.json", "contact_sheet.png"
+#: What a calibration writes; ``calibration.json`` last: its presence marks a complete calibration.
+OUTPUT_NAMES = (CUBE_NAME, SHEET_NAME, REPORT_NAME)
 #: A rectified pixel counts as valid in the cube when this share of it came from valid superpixels.
 _VALID_SHARE = 0.999
 
@@ -136,6 +140,14 @@ def calibrate_session(
     clock = _stage_clock(timings)
     with clock("verify"):
         inputs = _verify(Path(session_dir).resolve(), out_dir, overwrite, settings)
+    require_memory(_calibration_bytes(inputs), f"calibrating {len(inputs.bands)} bands at {inputs.rig.geometry.rectify_px}² px",
+                   "Lower the rig's geometry.rectify_px (and cube_px).")
+    with claim_outputs(inputs.out, OUTPUT_NAMES, force=overwrite, marker=REPORT_NAME, what="calibration") as staging:
+        return _calibrate(inputs, settings, staging, progress, timings, clock)
+
+
+def _calibrate(inputs: _Inputs, settings: CalibrationSettings, staging: Staging, progress, timings, clock) -> CalibrationResult:
+    """The calibration itself, into the claimed folder's staging area (see ``calibrate_session``)."""
     total = len(inputs.bands) + 3
     _report(progress, 1, total, "frames verified")
     with clock("decode"):
@@ -156,21 +168,23 @@ def calibrate_session(
     cube = Cube(torch.from_numpy(cube_r), torch.from_numpy(mask), _cube_header(inputs, entries, settings))
     report = _calibration_report(inputs, entries, flags, mask, settings)
     with clock("write"):
-        cube_path, sheet = _write_images(cube, bands, entries, flags, inputs)
+        _write_images(cube, bands, entries, flags, inputs, staging)
     report["timings_s"] = {**{k: round(v, 4) for k, v in timings.items()}, "total": round(sum(timings.values()), 4)}
-    report_path = atomic_write(inputs.out / REPORT_NAME, (json.dumps(report, indent=2, allow_nan=False) + "\n").encode(), prefix=".calibration-")
+    atomic_write(staging.path(REPORT_NAME), (json.dumps(report, indent=2, allow_nan=False) + "\n").encode(), prefix=".calibration-")
     _report(progress, total, total, f"written to {inputs.out}")
-    return CalibrationResult(cube, inputs.out, cube_path, report_path, sheet, report, flags, report["timings_s"])
+    out = inputs.out
+    return CalibrationResult(cube, out, out / CUBE_NAME, out / REPORT_NAME, out / SHEET_NAME, report, flags, report["timings_s"])
 
 
 def _verify(session: Path, out_dir: str | Path | None, overwrite: bool, settings: CalibrationSettings) -> _Inputs:
-    """The manifest, its rig and every frame checked; the output folder chosen and checked."""
+    """The manifest, its rig and every frame checked; the output folder chosen."""
     manifest = read_manifest(session)
     rig = manifest.rig_config()
     geo = rig.geometry
     if geo.rectify_px % geo.cube_px:
         raise CalibrationError(f"rig geometry: rectify_px {geo.rectify_px} is not a multiple of cube_px {geo.cube_px}")
-    out = _output_dir(session, out_dir, overwrite)
+    out = default_out_dir(session) if out_dir is None else Path(out_dir).resolve()
+    check_outputs(out, OUTPUT_NAMES, force=overwrite, what="calibration")  # before the frames are hashed
     dark_record, bands = select_frames(manifest, rig, settings.dark_frame)
     paths = verify_files(session, manifest.frames)
     roi = settings.gray_card_roi_px or geo.gray_card_roi_px
@@ -359,28 +373,24 @@ def _calibration_report(inputs: _Inputs, entries: list[dict], flags: list[Flag],
     }
 
 
-def _write_images(cube: Cube, bands: list[_Band], entries: list[dict], flags: list[Flag], inputs: _Inputs) -> tuple[Path, Path]:
-    """``cube.exr`` and ``contact_sheet.png`` into the output folder."""
-    out, wavelengths = inputs.out, cube.header.wavelengths_nm
-    out.mkdir(parents=True, exist_ok=True)
-    cube_path = write_cube(out / CUBE_NAME, cube)
+def _write_images(cube: Cube, bands: list[_Band], entries: list[dict], flags: list[Flag], inputs: _Inputs, staging: Staging) -> None:
+    """``cube.exr`` and ``contact_sheet.png`` into the staging area."""
+    wavelengths = cube.header.wavelengths_nm
+    write_cube(staging.path(CUBE_NAME), cube)
     cube_r, mask = cube.reflectance.numpy(), cube.mask.numpy()
-    sheet = write_contact_sheet(
-        out / SHEET_NAME, wavelengths, [b.thumb for b in bands], cube_r, mask,
+    write_contact_sheet(
+        staging.path(SHEET_NAME), wavelengths, [b.thumb for b in bands], cube_r, mask,
         [_caption(e, k == inputs.reference_index) for k, e in enumerate(entries)], [any(f.band_nm == w for f in flags) for w in wavelengths],
         f"{inputs.session.name}: {len(bands)} bands, {len(flags)} flag(s), {mask.mean():.0%} of the window valid",
     )
-    return cube_path, sheet
 
 
-def _output_dir(session: Path, out_dir: str | Path | None, overwrite: bool) -> Path:
-    out = default_out_dir(session) if out_dir is None else Path(out_dir).resolve()
-    if out == session or session in out.parents:
-        raise CalibrationError(f"{out}: output would be written inside the session folder {session}; choose another -o")
-    existing = [n for n in (CUBE_NAME, REPORT_NAME, SHEET_NAME) if (out / n).exists()]
-    if existing and not overwrite:
-        raise FileExistsError(f"{out}: already holds a calibration ({', '.join(existing)}); use --force to replace it")
-    return out
+def _calibration_bytes(inputs: _Inputs) -> float:
+    """Peak memory of the calibration: the rectified reflectance and validity of every band (float32),
+    twice over while they are aligned, and three decoded raw frames of the camera's size."""
+    rect = inputs.rig.geometry.rectify_px ** 2 * len(inputs.bands) * 4 * 2 * 2
+    raw = sum(p.stat().st_size for p in list(inputs.paths.values())[:3]) * 12  # 16-bit DNG → float32 values, masks
+    return float(rect + raw)
 
 
 def _decode(path: Path, label: str, settings: CalibrationSettings) -> RawImage:

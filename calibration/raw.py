@@ -25,6 +25,8 @@ it to the window's edge model.
 
 from __future__ import annotations
 
+import os
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -85,7 +87,7 @@ def read_raw(path: str | Path, saturation_margin: float = 0.01, label: str | Non
     if not path.is_file():
         raise FileNotFoundError(f"{name}: raw file not found")
     try:
-        with rawpy.imread(str(path)) as raw:
+        with _quiet_stderr(), rawpy.imread(str(path)) as raw:
             pattern = raw.raw_pattern
             if pattern is None or np.asarray(pattern).shape != (2, 2):
                 shape = None if pattern is None else np.asarray(pattern).shape
@@ -123,6 +125,24 @@ def read_raw(path: str | Path, saturation_margin: float = 0.01, label: str | Non
         white_level=white,
         cfa=cfa,
     )
+
+
+@contextmanager
+def _quiet_stderr():
+    """LibRaw writes its own complaint about a broken file to the process's stderr (file descriptor 2,
+    past Python), beside the one-line error this module raises: keep it out of the user's terminal."""
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def superpixel(values: np.ndarray) -> np.ndarray:

@@ -103,20 +103,21 @@ class CalibrationSettings(Strict):
     align_min_shift_px: float = Field(
         0.5,
         ge=0,
+        le=100,
         description=(
             "A measured shift below this (cube pixels) is reported, not applied: each window is cut from its own frame, "
             "which registers the bands better than ECC across bands of different contrast (0.1–0.2 px); 0: apply every shift."
         ),
     )
     max_alignment_px: float = Field(
-        4.0, gt=0, description="A shift beyond this (cube pixels) is not applied: the band stays as rectified, flagged."
+        4.0, gt=0, le=100, description="A shift beyond this (cube pixels) is not applied: the band stays as rectified, flagged."
     )
 
     # Quality-check thresholds (flags).
     gray_card_drift: float = Field(
         0.15, gt=0, description="Flag a band whose flash factor differs from 1 by more than this (fraction)."
     )
-    max_misalignment_px: float = Field(1.0, gt=0, description="Flag a band whose alignment shift exceeds this (cube pixels).")
+    max_misalignment_px: float = Field(1.0, gt=0, le=100, description="Flag a band whose alignment shift exceeds this (cube pixels).")
     max_flagged_fraction: float = Field(
         0.05, ge=0, le=1, description="Flag a band whose saturated or under-exposed share of the window exceeds this."
     )

@@ -38,6 +38,7 @@ from pydantic import Field, ValidationError, model_validator
 
 from .errors import InputError
 from .exr import band_channels, float_attribute, read_exr, write_exr
+from .maps import MAX_MM_PER_PIXEL, MIN_MM_PER_PIXEL
 from .settings import Strict, format_validation_error
 from .version import software_version
 
@@ -76,10 +77,10 @@ class Provenance(Strict):
 class CubeHeader(Strict):
     """Everything a reader of a cube needs besides the pixels (see the module docstring)."""
 
-    wavelengths_nm: list[float] = Field(..., min_length=1, description="Band centres (nm), increasing.")
+    wavelengths_nm: list[float] = Field(..., min_length=1, max_length=512, description="Band centres (nm), increasing.")
     band_fwhm_nm: Optional[list[float]] = Field(None, description="Each band's filter FWHM (nm); None: not recorded.")
     camera_angle_deg: Optional[float] = Field(None, ge=0, lt=90, description="Camera axis off the flash axis (°); None: not recorded.")
-    mm_per_pixel: float = Field(..., gt=0, description="Pixel side on the skin (mm).")
+    mm_per_pixel: float = Field(..., ge=MIN_MM_PER_PIXEL, lt=MAX_MM_PER_PIXEL, description="Pixel side on the skin (mm).")
     software_version: str = Field(default_factory=software_version, description="The skinlayers version that wrote it.")
     provenance: Provenance = Provenance()
     calibration: dict = Field(default_factory=dict, description="The calibration's own record (free-form, for people).")

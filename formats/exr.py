@@ -56,6 +56,7 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray | torch.Tensor], 
         header[key] = value
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-", suffix=".exr")
+    os.fchmod(fd, 0o644)  # mkstemp makes it private; outputs are shared data, as every other file written
     os.close(fd)
     try:
         with OpenEXR.File(header, data) as f:

@@ -39,7 +39,7 @@ class ManifestError(InputError):
 class Exposure(BaseModel):
     """A frame's exposure as the camera reported it."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     iso: int = Field(..., gt=0)
     shutter_s: float = Field(..., gt=0)
     aperture_f: float = Field(..., gt=0)
@@ -48,7 +48,7 @@ class Exposure(BaseModel):
 class FrameRecord(BaseModel):
     """One captured frame."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     role: Role
     band_nm: Optional[float] = Field(None, description="Band of the filter (None for the dark frame).")
@@ -72,7 +72,7 @@ class FrameRecord(BaseModel):
 class Manifest(BaseModel):
     """The session's record. ``status`` is ``in_progress`` until every planned frame is taken."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     schema_version: int = SCHEMA_VERSION
     software_version: str = "unknown"

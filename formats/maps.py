@@ -22,12 +22,15 @@ import torch
 
 from .exr import ExrError, band_channels, float_attribute, read_exr, write_exr
 
-__all__ = ["MAP_CHANNELS", "PARAMETER_NAMES", "MapFile", "MapsError", "read_absorbance", "read_map_file", "write_map_file"]
+__all__ = ["MAP_CHANNELS", "MAX_MM_PER_PIXEL", "MIN_MM_PER_PIXEL", "PARAMETER_NAMES", "MapFile", "MapsError", "read_absorbance", "read_map_file", "write_map_file"]
 
 #: The five chromophore parameters, in the order every per-pixel tensor ``(N, N_PARAMS)`` holds them.
 PARAMETER_NAMES = ("C_m", "beta_m", "C_he", "C_bc", "C_hd")
 #: Channel names of the map format, in order; ``rho_s`` is optional.
 MAP_CHANNELS = (*PARAMETER_NAMES, "rho_s")
+#: A pixel's side on the skin (mm): above a tenth of a micrometre (below that no optics resolves it, and
+#: a millimetre of border would take ten thousand pixels), below a centimetre.
+MIN_MM_PER_PIXEL, MAX_MM_PER_PIXEL = 1e-4, 10.0
 
 
 class MapsError(ExrError):

@@ -12,12 +12,16 @@ from __future__ import annotations
 
 from typing import Literal, Optional
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from .settings import PixelBox, SettingsError, Strict, validate_settings
 
 __all__ = ["BandConfig", "CameraConfig", "GeometryConfig", "PolarizationConfig", "RigConfig", "RigError",
            "TargetsConfig", "WheelConfig", "rig_from_dict"]
+
+
+#: The largest cube and rectified window a rig may ask for: 8× and 8× the paper's 256 and 512.
+MAX_CUBE_PX, MAX_RECTIFY_PX = 2048, 4096
 
 
 class RigError(SettingsError):
@@ -30,9 +34,9 @@ class BandConfig(Strict):
     wavelength_nm: float = Field(..., ge=380, le=800, description="Centre wavelength of the band-pass filter (nm).")
     fwhm_nm: float = Field(10.0, gt=0, le=100, description="Full width at half maximum of the filter (nm).")
     filter_position: int = Field(..., ge=1, description="Wheel position holding this filter (1-based, as the FW102C counts).")
-    iso: int = Field(400, gt=0, description="ISO of the frames in this band (DWRR08: 200–800 by wavelength).")
-    shutter_s: float = Field(0.01, gt=0, description="Shutter time (s); the flash is far shorter (DWRR08: 1/100 s).")
-    aperture_f: float = Field(10.0, gt=0, description="Aperture f-number (DWRR08: f/10).")
+    iso: int = Field(400, gt=0, le=409600, description="ISO of the frames in this band (DWRR08: 200–800 by wavelength).")
+    shutter_s: float = Field(0.01, gt=0, le=60, description="Shutter time (s); the flash is far shorter (DWRR08: 1/100 s).")
+    aperture_f: float = Field(10.0, ge=0.5, le=128, description="Aperture f-number (DWRR08: f/10).")
 
 
 class WheelConfig(Strict):
@@ -40,8 +44,8 @@ class WheelConfig(Strict):
 
     port: Optional[str] = Field(None, description="Serial port of the wheel, e.g. /dev/ttyUSB0 or COM3.")
     baud: int = Field(115200, gt=0, description="Baud rate (FW102C default 115200, 8N1).")
-    timeout_s: float = Field(2.0, gt=0, description="Time to wait for one answer of the wheel (s).")
-    move_timeout_s: float = Field(10.0, gt=0, description="Time to wait for a move to finish (s).")
+    timeout_s: float = Field(2.0, gt=0, le=600, description="Time to wait for one answer of the wheel (s).")
+    move_timeout_s: float = Field(10.0, gt=0, le=600, description="Time to wait for a move to finish (s).")
     retries: int = Field(2, ge=0, le=10, description="Retries of an exchange that failed before giving up.")
     position_count: int = Field(12, description="Positions of the wheel (6 or 12).")
     dark_position: int = Field(1, ge=1, description="Position of the opaque slot used for the black frame.")
@@ -62,6 +66,16 @@ class TargetsConfig(Strict):
     spectralon_reflectance: float | dict[float, float] = Field(
         0.99, description="Certified reflectance of the Spectralon target: one value, or per band {nm: value}."
     )
+
+    @field_validator("spectralon_reflectance")
+    @classmethod
+    def _certified(cls, value):
+        values = list(value.values()) if isinstance(value, dict) else [value]
+        if not values or any(not (0 < v <= 1) for v in values):
+            raise ValueError(f"a certified reflectance lies in (0, 1], got {value}")
+        if isinstance(value, dict) and any(not 380 <= k <= 800 for k in value):
+            raise ValueError(f"the certificate's wavelengths must lie within 380–800 nm, got {sorted(value)}")
+        return value
     gray_card_reflectance: float = Field(0.30, gt=0, lt=1, description="Reflectance of the gray card in every frame.")
 
     def spectralon_at(self, wavelength_nm: float) -> float:
@@ -83,17 +97,17 @@ class PolarizationConfig(Strict):
     relative to an ideal depolarizing reflector of the same reflectance."""
 
     spectralon_factor: float = Field(
-        1.0527, gt=0, description="Spectralon's signal under the crossed polarizers over its certified reflectance (±5.27% s/p)."
+        1.0527, gt=0, le=10, description="Spectralon's signal under the crossed polarizers over its certified reflectance (±5.27% s/p)."
     )
-    skin_factor: float = Field(1.0, gt=0, description="Skin's (imperfect) depolarization factor; its spread is left to the fit's scale.")
+    skin_factor: float = Field(1.0, gt=0, le=10, description="Skin's (imperfect) depolarization factor; its spread is left to the fit's scale.")
 
 
 class GeometryConfig(Strict):
     """The patch: the black tape's window."""
 
-    window_mm: float = Field(7.5, gt=0, description="Side of the square window in the black tape (DWRR08: 7.5 mm).")
-    cube_px: int = Field(256, ge=16, description="Side of the calibrated reflectance cube (DWRR08: 512 → 256).")
-    rectify_px: int = Field(512, ge=16, description="Side the window is resampled to before the box filter.")
+    window_mm: float = Field(7.5, gt=0, le=100, description="Side of the square window in the black tape (DWRR08: 7.5 mm).")
+    cube_px: int = Field(256, ge=16, le=MAX_CUBE_PX, description="Side of the calibrated reflectance cube (DWRR08: 512 → 256).")
+    rectify_px: int = Field(512, ge=16, le=MAX_RECTIFY_PX, description="Side the window is resampled to before the box filter.")
     gray_card_roi_px: Optional[PixelBox] = Field(
         None,
         description=(
@@ -107,7 +121,7 @@ class RigConfig(Strict):
     """Everything about the rig a session and its calibration need."""
 
     name: str = Field("DWRR08-style rig", description="A name for this rig.")
-    bands: list[BandConfig] = Field(..., min_length=1, description="The acquisition bands, in capture order.")
+    bands: list[BandConfig] = Field(..., min_length=1, max_length=64, description="The acquisition bands, in capture order.")
     wheel: WheelConfig = WheelConfig()
     camera: CameraConfig = CameraConfig()
     targets: TargetsConfig = TargetsConfig()

@@ -10,7 +10,14 @@ reads them all the same way:
    mapping key by key, at any depth; anything else replaces what was there.
 
 A file that cannot be used raises the caller's error class (a ``SettingsError``) with the file and the
-first bad key named, and one clause per problem: ``FILE: key.path: message (got value)``.
+first bad key named, and one clause per problem: ``FILE: key.path: message (got value)``, the value cut
+to a readable length.
+
+Settings are small, and a file is data, not instructions: a file is read only up to
+``MAX_SETTINGS_BYTES``; YAML's anchors and aliases are allowed, but the document they build may hold at
+most ``MAX_SETTINGS_NODES`` values at most ``MAX_SETTINGS_DEPTH`` deep (an "alias bomb" of a few lines
+stands for a billion values); and a number must be finite (``allow_inf_nan=False``: ``.inf`` and
+``.nan`` are refused wherever a number is meant).
 """
 
 from __future__ import annotations
@@ -24,18 +31,23 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 
 from .errors import SettingsError
 
-__all__ = ["PixelBox", "SettingsError", "Strict", "format_validation_error", "load_settings", "merge", "read_yaml_mapping", "validate_settings"]
+__all__ = ["MAX_SETTINGS_BYTES", "MAX_SETTINGS_DEPTH", "MAX_SETTINGS_NODES", "PixelBox", "SettingsError", "Strict", "format_validation_error", "load_settings", "merge", "read_yaml_mapping", "validate_settings"]
 
 S = TypeVar("S", bound=BaseModel)
 
 #: The longest rejected value an error message shows (a whole rejected document is no help to read).
 _SHOWN_VALUE_CHARS = 120
+#: The largest settings file read (the biggest shipped one is under 10 kB).
+MAX_SETTINGS_BYTES = 1 << 20
+#: The most values, and the deepest nesting, a settings document may hold once its aliases are expanded.
+MAX_SETTINGS_NODES = 100_000
+MAX_SETTINGS_DEPTH = 32
 
 
 class Strict(BaseModel):
-    """Settings: unknown keys refused, frozen once made, defaults validated like given values."""
+    """Settings: unknown keys refused, frozen once made, defaults validated like given values, numbers finite."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, protected_namespaces=())
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, protected_namespaces=(), allow_inf_nan=False)
 
 
 def _box(value: list[int]) -> list[int]:
@@ -53,16 +65,43 @@ def read_yaml_mapping(path: str | Path, error: type[Exception] = SettingsError, 
     the file and the problem: unreadable, not YAML, or not a mapping (``what``: "of settings", …)."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        with open(path, "rb") as f:
+            raw = f.read(MAX_SETTINGS_BYTES + 1)
     except OSError as exc:
         raise error(f"{path}: cannot read ({exc.strerror or exc})") from None
+    if len(raw) > MAX_SETTINGS_BYTES:
+        raise error(f"{path}: larger than {MAX_SETTINGS_BYTES >> 10} kB; a settings file is a few kB (is this the right file?)")
+    try:
+        data = yaml.safe_load(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not UTF-8 text (byte {exc.start}); save it as UTF-8") from None
     except yaml.YAMLError as exc:
-        raise error(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
+        raise error(f"{path}: not valid YAML ({_shorten(' '.join(str(exc).split()))})") from None
+    _check_size(data, path, error)
     if data is None:
         return {}
     if not isinstance(data, dict):
         raise error(f"{path}: expected a mapping {what + ' ' if what else ''}at the top level")
     return data
+
+
+def _check_size(data: Any, path: Path, error: type[Exception]) -> None:
+    """Refuse a document of more than ``MAX_SETTINGS_NODES`` values or ``MAX_SETTINGS_DEPTH`` levels,
+    counting every use of an alias (safe_load shares aliased objects, so the count stops the walk of an
+    alias bomb long before it would expand)."""
+    budget = MAX_SETTINGS_NODES
+    stack = [(data, 1)]
+    while stack:
+        value, depth = stack.pop()
+        budget -= 1
+        if budget < 0:
+            raise error(f"{path}: holds more than {MAX_SETTINGS_NODES} values once its aliases are expanded; refused")
+        if depth > MAX_SETTINGS_DEPTH:
+            raise error(f"{path}: nested more than {MAX_SETTINGS_DEPTH} levels deep; refused")
+        if isinstance(value, dict):
+            stack.extend((v, depth + 1) for v in value.values())
+        elif isinstance(value, (list, tuple)):
+            stack.extend((v, depth + 1) for v in value)
 
 
 def merge(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict:
@@ -126,5 +165,8 @@ _REPR.maxlist = _REPR.maxtuple = 16
 
 def _shown(value: Any) -> str:
     """``repr(value)``, bounded: reprlib stops at depth and length, so a huge value costs no memory."""
-    text = _REPR.repr(value)
+    return _shorten(_REPR.repr(value))
+
+
+def _shorten(text: str) -> str:
     return text if len(text) <= _SHOWN_VALUE_CHARS else text[: _SHOWN_VALUE_CHARS - 3] + "..."

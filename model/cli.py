@@ -13,6 +13,7 @@ import typer
 import yaml
 
 from ..formats.errors import InputError
+from ..formats.outputs import write_file
 from .colour import ColourConverter, ita_degrees
 from .layered import SkinModel
 from .params import PARAMETER_NAMES, TABLE2, SkinParams
@@ -109,6 +110,7 @@ def spectrum(
     wavelengths: str = typer.Option("400:700:5", "--wavelengths", help="start:stop:step (nm, stop included) or a comma list."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a figure of the spectrum and its colour."),
+    force: bool = typer.Option(False, "--force", help="Replace the --plot file if it exists."),
     illuminant: str = typer.Option("D65", "--illuminant", help="CIE illuminant for sRGB and L*a*b*."),
     method: str = typer.Option("exact", "--method", help="exact (closed-form profiles) or tables (Gaussian tables)."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model settings YAML (configs/model.yaml)."),
@@ -122,7 +124,7 @@ def spectrum(
     model = SkinModel(settings)
     report = _spectrum_report(model, params, parse_wavelengths(wavelengths), method, illuminant)
     if plot is not None:
-        _plot_spectra([("skin", report)], plot, title="Diffuse reflectance (normal incidence, specular excluded)")
+        _plot_spectra([("skin", report)], plot, title="Diffuse reflectance (normal incidence, specular excluded)", force=force)
     if as_json:
         typer.echo(json.dumps(report))
         return
@@ -149,6 +151,7 @@ def spectrum(
 
 def skin_types(
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write the figure of spectra and colours (PNG)."),
+    force: bool = typer.Option(False, "--force", help="Replace the --plot file if it exists."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
     illuminant: str = typer.Option("D65", "--illuminant", help="CIE illuminant for sRGB and L*a*b*."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model settings YAML."),
@@ -162,7 +165,7 @@ def skin_types(
     wl = parse_wavelengths("400:700:5")
     rows = [(name, _spectrum_report(model, SkinParams.from_mapping(p), wl, "exact", illuminant)) for name, p in TABLE2.items()]
     if plot is not None:
-        _plot_spectra(rows, plot, title="DWRR08 Table 2 skin types (lower arm), homogeneous model")
+        _plot_spectra(rows, plot, title="DWRR08 Table 2 skin types (lower arm), homogeneous model", force=force)
     if as_json:
         typer.echo(json.dumps({"skin_types": [{"name": n, **r} for n, r in rows]}))
         return
@@ -209,7 +212,7 @@ def tables(
     )
 
 
-def _plot_spectra(rows: list[tuple[str, dict]], path: Path, title: str) -> None:
+def _plot_spectra(rows: list[tuple[str, dict]], path: Path, title: str, force: bool) -> None:
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
@@ -234,11 +237,10 @@ def _plot_spectra(rows: list[tuple[str, dict]], path: Path, title: str) -> None:
     sw.axis("off")
     sw.set_title("sRGB (" + rows[0][1]["illuminant"] + ")", fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    if path.parent and not path.parent.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    try:
+        write_file(path, lambda p: fig.savefig(p, dpi=130, format="png"), force=force, what="figure")
+    finally:
+        plt.close(fig)
 
 
 def _device(name: str) -> torch.device:
@@ -265,6 +267,7 @@ def render(
     blur: Optional[str] = typer.Option(None, "--blur", help="Blur strategy: pyramid, fft or chain (default from settings)."),
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model settings YAML."),
+    force: bool = typer.Option(False, "--force", help="Replace OUT.exr and OUT.png if they exist."),
 ) -> None:
     """Render parameter maps with the heterogeneous layered model: a spectral EXR and an sRGB PNG.
 
@@ -274,6 +277,7 @@ def render(
     from .illumination import parse_light  # noqa: PLC0415
     from ..formats.exr import write_spectral  # noqa: PLC0415
     from ..formats.maps import read_absorbance  # noqa: PLC0415
+    from ..formats.outputs import claim_outputs  # noqa: PLC0415
     from .maps_io import read_maps  # noqa: PLC0415
     from .renderer import SkinRenderer  # noqa: PLC0415
 
@@ -294,23 +298,41 @@ def render(
         if abs(ink_mm - maps.mm_per_pixel) > 1e-6 * maps.mm_per_pixel:
             raise InputError(f"{tattoo}: mm_per_pixel {ink_mm:g} differs from the maps' {maps.mm_per_pixel:g}")
         maps = add_absorbance(maps, ink, ink_wl)
-    start = time.perf_counter()
-    result = SkinRenderer(settings).render(
-        maps.to(dev), lit, wl, under_gel=gel, light_angle_deg=light_angle, view_angle_deg=view_angle, blur=blur
-    )
-    seconds = time.perf_counter() - start
-    image = result.image[0].detach().cpu().double()
     base = out.with_suffix("") if out.suffix.lower() in (".exr", ".png") else out
-    exr = write_spectral(base.with_suffix(".exr"), image, wl, maps.mm_per_pixel,
-                         attributes={"light": light, "software": "skinlayers"})
-    png = base.with_suffix(".png")
-    if wl.numel() >= 2:
-        rgb = ColourConverter(wl, settings.illuminant).srgb(image.permute(1, 2, 0))
-        _write_png(png, rgb)
+    names = [base.with_suffix(".exr").name] + ([base.with_suffix(".png").name] if wl.numel() >= 2 else [])
+    renderer = SkinRenderer(settings)
+    with claim_outputs(base.parent, names, force=force, lock_name=f".{base.name}.lock", what="rendering") as staging:
+        start = time.perf_counter()
+        images, terms = [], []
+        for group in _band_groups(maps, lit, wl, settings, dev):
+            result = renderer.render(
+                maps.to(dev), lit, wl[group], under_gel=gel, light_angle_deg=light_angle, view_angle_deg=view_angle, blur=blur
+            )
+            images.append(result.image[0].detach().cpu().double())
+            terms += result.terms
+        seconds = time.perf_counter() - start
+        image = torch.cat(images)
+        write_spectral(staging.path(names[0]), image, wl, maps.mm_per_pixel, attributes={"light": light, "software": "skinlayers"})
+        if wl.numel() >= 2:
+            _write_png(staging.path(names[1]), ColourConverter(wl, settings.illuminant).srgb(image.permute(1, 2, 0)))
     typer.echo(
         f"rendered {image.shape[1]}×{image.shape[2]} px at {wl.numel()} bands on {dev.type} in {seconds:.1f} s "
-        f"({result.terms[0]} inter-scattering terms): {exr}" + (f", {png}" if wl.numel() >= 2 else "")
+        f"({max(terms)} inter-scattering terms): " + ", ".join(str(base.parent / n) for n in names)
     )
+
+
+def _band_groups(maps, light, wl: torch.Tensor, settings: ModelSettings, device) -> list[slice]:
+    """The bands in groups that each fit in the memory available (the bands render independently); one
+    band that does not fit is refused by the renderer itself."""
+    from ..formats.resources import USABLE_SHARE, available_memory_bytes  # noqa: PLC0415
+    from .renderer import render_bytes  # noqa: PLC0415
+
+    _, h, w = maps.shape
+    border = light.border_px(maps.mm_per_pixel, settings.render.border_mm)
+    per_band = render_bytes(1, 1, h, w, border, itemsize=maps.dtype.itemsize, weight_cache_mb=settings.render.weight_cache_mb)
+    available = available_memory_bytes(device)
+    size = wl.numel() if available is None else max(1, min(wl.numel(), int(USABLE_SHARE * available // per_band)))
+    return [slice(k, k + size) for k in range(0, wl.numel(), size)]
 
 
 def _write_png(path: Path, rgb: torch.Tensor) -> None:
@@ -319,8 +341,7 @@ def _write_png(path: Path, rgb: torch.Tensor) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    plt.imsave(path, rgb.clamp(0, 1).numpy())
+    plt.imsave(path, rgb.clamp(0, 1).numpy(), format="png")
 
 
 def register(app: typer.Typer) -> None:

@@ -11,7 +11,7 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from ..formats.maps import MAP_CHANNELS, MapsError
+from ..formats.maps import MAP_CHANNELS, MAX_MM_PER_PIXEL, MIN_MM_PER_PIXEL, MapsError
 from .params import PARAMETER_BOUNDS, PARAMETER_NAMES, SkinParams
 
 __all__ = ["MAP_CHANNELS", "MapsError", "SkinMaps"]
@@ -81,8 +81,9 @@ class SkinMaps:
 
     def validate(self, source: str = "maps") -> "SkinMaps":
         """Refuse wrong shapes, NaN and values outside the physical ranges, naming the channel."""
-        if not (self.mm_per_pixel > 0 and self.mm_per_pixel < 10):
-            raise MapsError(f"{source}: mm_per_pixel must be a positive pixel size in mm, got {self.mm_per_pixel!r}")
+        if not (MIN_MM_PER_PIXEL <= self.mm_per_pixel < MAX_MM_PER_PIXEL):
+            raise MapsError(f"{source}: mm_per_pixel must be a pixel size of {MIN_MM_PER_PIXEL:g}–{MAX_MM_PER_PIXEL:g} mm, "
+                            f"got {self.mm_per_pixel!r}")
         shape = self.C_m.shape
         if len(shape) != 3 or min(shape) < 1:
             raise MapsError(f"{source}: C_m must have shape (B, H, W), got {tuple(shape)}")

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from ..formats.resources import require_memory
 from .blur import BlurPlan
 from .gather import columns, gather, lookup, total
 from .illumination import Light
@@ -33,7 +34,22 @@ from .settings import ModelSettings
 from .specular import torrance_sparrow_factor
 from .tables import EPIDERMIS_PROFILES
 
-__all__ = ["RenderResult", "SkinRenderer"]
+__all__ = ["RenderResult", "SkinRenderer", "render_bytes"]
+
+#: Peak memory of a forward render per pixel of the padded grid and band, in float32: the blur stacks
+#: and per-pixel lookups, and on top the per-pixel Gaussian weights kept across terms (up to
+#: ``weight_cache_mb``); a backward pass needs about twice the forward's (measured at 128² and 256²:
+#: docs/renderer.md, "Speed and memory").
+_FORWARD_BYTES, _CACHE_BYTES, _BACKWARD_FACTOR = 260.0, 230.0, 2.0
+
+
+def render_bytes(batch: int, bands: int, height: int, width: int, border_px: int, *, itemsize: int = 4,
+                 weight_cache_mb: float = 0.0, backward: bool = False) -> float:
+    """Estimated peak memory (bytes) of rendering ``batch`` × ``bands`` images of ``height`` × ``width``
+    pixels with ``border_px`` of occluded skin on every side."""
+    cells = batch * bands * (height + 2 * border_px) * (width + 2 * border_px) * itemsize / 4.0
+    need = _FORWARD_BYTES * cells + min(_CACHE_BYTES * cells, weight_cache_mb * 2**20)
+    return need * (_BACKWARD_FACTOR if backward else 1.0)
 
 
 @dataclass
@@ -77,6 +93,12 @@ class SkinRenderer:
         b, h, w = maps.shape
         dtype, device = maps.dtype, maps.device
         border = light.border_px(maps.mm_per_pixel, rs.border_mm)
+        backward = torch.is_grad_enabled() and any(v.requires_grad for v in maps.params().values())
+        require_memory(
+            render_bytes(b, wl.numel(), h, w, border, itemsize=dtype.itemsize, weight_cache_mb=rs.weight_cache_mb, backward=backward),
+            f"rendering {b}×{wl.numel()} band(s) of {h + 2 * border}×{w + 2 * border} px ({border} px of border)",
+            "Render fewer bands at once, a coarser grid, or less border (render.border_mm).", device,
+        )
         pad = lambda x: _replicate(x, border)  # noqa: E731 (border parameters follow the nearest pixel)
         params = maps.params()
         padded = type(params)(*(pad(v) for v in params.values()))

@@ -87,12 +87,12 @@ class TableSettings(Strict):
         0.01 / (2.0 * math.sqrt(2.0)), gt=0, description="Standard deviation of the narrowest Gaussian (mm)."
     )
     sigma_a_min_per_mm: float = Field(0.01, gt=0, description="Lowest tabulated σa (mm⁻¹).")
-    sigma_a_max_per_mm: float = Field(200.0, gt=0, description="Highest tabulated σa (mm⁻¹).")
-    n_sigma_a: int = Field(256, ge=8, description="Log-spaced σa samples per table (DWRR08: 256).")
+    sigma_a_max_per_mm: float = Field(200.0, gt=0, le=1e5, description="Highest tabulated σa (mm⁻¹).")
+    n_sigma_a: int = Field(256, ge=8, le=4096, description="Log-spaced σa samples per table (DWRR08: 256).")
     multipole_tolerance: float = Field(1e-8, gt=0, lt=1e-2, description="Energy of dipole pairs left out.")
     fit_r_min_mm: float = Field(2e-4, gt=0, description="Innermost radius of the least-squares fit grid (mm).")
-    fit_r_max_mm: float = Field(80.0, gt=0, description="Outermost radius of the fit grid (mm).")
-    fit_r_samples: int = Field(300, ge=50, description="Log-spaced radii in the fit grid.")
+    fit_r_max_mm: float = Field(80.0, gt=0, le=1000, description="Outermost radius of the fit grid (mm).")
+    fit_r_samples: int = Field(300, ge=50, le=10000, description="Log-spaced radii in the fit grid.")
 
     @model_validator(mode="after")
     def _ranges(self) -> "TableSettings":
@@ -134,7 +134,7 @@ class RenderSettings(Strict):
             "without it, use 1e-3 or less."
         ),
     )
-    max_series_terms: int = Field(12, ge=1, description="Upper bound on inter-scattering terms (DWRR08 used 5–6).")
+    max_series_terms: int = Field(12, ge=1, le=100, description="Upper bound on inter-scattering terms (DWRR08 used 5–6).")
     series_closure: bool = Field(
         True,
         description=(
@@ -144,7 +144,7 @@ class RenderSettings(Strict):
         ),
     )
     weight_cache_mb: float = Field(
-        1536.0, ge=0, description="Memory for per-pixel Gaussian weights kept across inter-scattering terms (0: none)."
+        1536.0, ge=0, le=1 << 20, description="Memory for per-pixel Gaussian weights kept across inter-scattering terms (0: none)."
     )
     checkpoint: bool = Field(
         True, description="Recompute blur stacks in the backward pass instead of storing them (memory for time)."
@@ -153,6 +153,7 @@ class RenderSettings(Strict):
     border_mm: float = Field(
         5.0,
         ge=0,
+        le=20,
         description=(
             "Skin simulated beyond the maps (occluded by the tape for window light) unless the light names its "
             "own. DWRR08 uses 1 cm; 5 mm changes no pixel of a 7.5-mm window by more than 10⁻⁴ of 1 cm's "
@@ -178,6 +179,8 @@ class ModelSettings(Strict):
     def _wavelengths(cls, value: list[float]) -> list[float]:
         if not value:
             raise ValueError("at least one wavelength is needed")
+        if len(value) > 512:
+            raise ValueError(f"at most 512 wavelengths, got {len(value)}")
         if any(not (380.0 <= w <= 800.0) for w in value):
             raise ValueError("wavelengths must lie within 380–800 nm")
         return value

@@ -8,7 +8,7 @@
 
 from .fit import FitEvent, MapFit, fit_cube
 from .optimizers import METHODS
-from .outputs import fit_summary, write_outputs
+from .outputs import fit_summary, reconstruct_cube, write_outputs
 from .settings import FitSettings, FitSettingsError, load_fit_settings
 from .spectrum_fit import PAPER_START, SpectrumFit, fit_spectra
 
@@ -24,5 +24,6 @@ __all__ = [
     "fit_spectra",
     "fit_summary",
     "load_fit_settings",
+    "reconstruct_cube",
     "write_outputs",
 ]

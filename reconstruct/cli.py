@@ -13,6 +13,7 @@ import typer
 
 from ..formats.cube import CUBE_NAME, calibrated_dir
 from ..formats.errors import InputError
+from ..formats.outputs import check_outputs, write_file
 from ..model import PARAMETER_NAMES, SkinModel, load_model_settings
 from .spectra_io import read_spectra_csv
 from .spectrum_fit import fit_spectra
@@ -29,6 +30,7 @@ def fit_spectrum(
         False, "--specular-included", help="The data include the surface's specular reflection (sphere, SCI)."
     ),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a figure of measured against fitted spectra."),
+    force: bool = typer.Option(False, "--force", help="Replace the --plot file if it exists."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model settings YAML."),
 ) -> None:
     """Fit C_m, β_m, C_he, C_bc, C_hd to measured reflectance spectra (homogeneous model, one batched fit).
@@ -43,11 +45,15 @@ def fit_spectrum(
         raise InputError(f"--range {wavelength_range!r}: expected lo:hi in nm, e.g. 400:700") from None
     if not (380.0 <= lo < hi <= 800.0):
         raise InputError(f"--range {wavelength_range!r}: must lie within 380–800 nm with lo < hi")
+    if plot is not None:  # before the fit: a figure it could not write is refused now, not after it
+        check_outputs(plot.parent, [plot.name], force=force, what="figure")
     data = read_spectra_csv(file).select(lo, hi)
     start = time.perf_counter()
-    fit = fit_spectra(
-        data.reflectance, data.wavelength_nm, SkinModel(settings), free_scale=free_scale, specular_included=specular_included
-    )
+    with _spectra_progress(len(data.names)) as progress:
+        fit = fit_spectra(
+            data.reflectance, data.wavelength_nm, SkinModel(settings), free_scale=free_scale, specular_included=specular_included,
+            progress=progress,
+        )
     seconds = time.perf_counter() - start
     rms = fit.rms_residual
     spectra = []
@@ -74,7 +80,7 @@ def fit_spectrum(
         "seconds": round(seconds, 3),
     }
     if plot is not None:
-        _plot_fits(data.names, data.wavelength_nm, data.reflectance, fit.fitted, rms, plot)
+        _plot_fits(data.names, data.wavelength_nm, data.reflectance, fit.fitted, rms, plot, force)
     if as_json:
         typer.echo(json.dumps({"spectra": spectra, "summary": summary}))
         return
@@ -89,7 +95,7 @@ def fit_spectrum(
         table.add_column("scale", justify="right")
     table.add_column("RMS", justify="right")
     table.add_column("at bound")
-    for s in spectra:
+    for s in spectra[:_TABLE_ROWS]:
         row = [s["name"], *(f"{s['params'][n]:.4g}" for n in PARAMETER_NAMES)]
         if free_scale:
             row.append(f"{s['scale']:.3f}")
@@ -97,6 +103,8 @@ def fit_spectrum(
         table.add_row(*row)
     console = Console()
     console.print(table)
+    if len(spectra) > _TABLE_ROWS:
+        console.print(f"… and {len(spectra) - _TABLE_ROWS} more spectra (--json lists every one)")
     console.print(
         f"{summary['count']} spectra, {summary['samples']} samples each ({lo:g}–{hi:g} nm): RMS residual median "
         f"{summary['median_rms_residual']:.4f}, worst {summary['worst_rms_residual']:.4f} ({summary['worst']}); "
@@ -106,7 +114,23 @@ def fit_spectrum(
         console.print(f"figure: {plot}")
 
 
-def _plot_fits(names, wavelength_nm, measured, fitted, rms, path: Path) -> None:
+#: Spectra the table shows; --json gives all.
+_TABLE_ROWS = 200
+
+
+@contextmanager
+def _spectra_progress(count: int):
+    """A progress bar over the spectra when the fit runs in more than one chunk; yields the callback."""
+    from rich.console import Console  # noqa: PLC0415
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn  # noqa: PLC0415
+
+    with Progress(TextColumn("fit-spectrum"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
+                  TimeRemainingColumn(), console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task("spectra", total=count)
+        yield lambda done, total: bar.update(task, completed=done, total=total)
+
+
+def _plot_fits(names, wavelength_nm, measured, fitted, rms, path: Path, force: bool) -> None:
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
@@ -127,9 +151,10 @@ def _plot_fits(names, wavelength_nm, measured, fitted, rms, path: Path) -> None:
     axes[-1].set_xlabel("RMS residual")
     axes[-1].set_title("all spectra", fontsize=9)
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    try:
+        write_file(path, lambda p: fig.savefig(p, dpi=120, format="png"), force=force, what="figure")
+    finally:
+        plt.close(fig)
 
 
 #: Iterations a level's pass usually takes, per method (only the ETA uses them; a level runs
@@ -180,8 +205,7 @@ def reconstruct(
     fit_settings.yaml. Example: skinlayers reconstruct my-session  (after skinlayers calibrate my-session)
     """
     from ..formats.cube import read_cube  # noqa: PLC0415
-    from .fit import fit_cube  # noqa: PLC0415
-    from .outputs import write_outputs  # noqa: PLC0415
+    from .outputs import OUTPUT_NAMES, reconstruct_cube  # noqa: PLC0415
     from .settings import load_fit_settings  # noqa: PLC0415
 
     if device not in ("cpu", "cuda", "auto"):
@@ -189,12 +213,10 @@ def reconstruct(
     settings = load_fit_settings(config, method=method, start=start)
     cube_path = resolve_cube_path(source)
     out_dir = out or default_reconstruction_dir(source, cube_path)
-    if (out_dir / "fit.json").exists() and not force:
-        raise FileExistsError(f"{out_dir}: holds an earlier fit (fit.json); choose another -o or pass --force")
-    cube = read_cube(cube_path)
-    with fit_progress(settings, cube.shape[0]) as on_event:
-        fit = fit_cube(cube, settings, device=device, progress=on_event)
-    paths = write_outputs(fit, settings, out_dir, source=str(cube_path))
+    check_outputs(out_dir, OUTPUT_NAMES, force=force, what="reconstruction")  # refused before any bar or work
+    bands = len(read_cube(cube_path).header.wavelengths_nm)
+    with fit_progress(settings, bands) as on_event:
+        fit, paths = reconstruct_cube(cube_path, out_dir, settings, device=device, force=force, progress=on_event)
     print_fit_summary(fit, settings)
     for kind, path in paths.items():
         typer.echo(f"{kind}: {path}")

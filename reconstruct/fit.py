@@ -26,7 +26,8 @@ from ..formats.cube import Cube
 from ..formats.errors import InputError
 from ..model import N_PARAMS, PARAMETER_NAMES
 from ..model.maps import SkinMaps
-from ..model.renderer import SkinRenderer
+from ..formats.resources import require_memory
+from ..model.renderer import SkinRenderer, render_bytes
 from .checks import DataChecks, check_cube, flag_value
 from .gauss_newton import curvature_and_columns, level_step
 from .optimizers import METHODS, OptimResult
@@ -136,6 +137,7 @@ def fit_cube(
     dtype = torch.float64 if settings.dtype == "float64" else torch.float32
     cpu0, wall0 = time.process_time(), time.perf_counter()
     checks = check_cube(cube, settings.saturated_reflectance, settings.dead_band_reflectance)
+    _require_memory(cube, settings, dtype, dev)
     view, view_source = view_angle_of(cube, settings)
     fwhm, fwhm_source = band_fwhm_of(cube, settings)
     renderer = renderer or SkinRenderer(settings.model, cache_dir)
@@ -185,6 +187,19 @@ def fit_cube(
         band_fwhm_source=fwhm_source, levels=records,
         counter=counter, cpu_s=time.process_time() - cpu0, wall_s=time.perf_counter() - wall0, history=history,
     )
+
+
+def _require_memory(cube: Cube, settings: FitSettings, dtype: torch.dtype, device: torch.device) -> None:
+    """Refuse, before any work, a cube whose finest level cannot be rendered and fitted in the memory
+    available: its render (with a backward pass for the exact-gradient methods) and the per-pixel
+    Jacobians, residuals and curvature blocks in float64."""
+    bands, h, w = cube.shape
+    border = math.ceil(settings.border_mm / cube.mm_per_pixel)
+    render = render_bytes(1, bands, h, w, border, itemsize=dtype.itemsize, weight_cache_mb=settings.model.render.weight_cache_mb,
+                          backward=settings.method in ("gn", "adam"))
+    per_pixel = h * w * (bands + 1) * (N_PARAMS + 1) * 8 * 4
+    require_memory(render + per_pixel, f"fitting a {h}×{w} cube at {bands} bands",
+                   "Fit a coarser cube (calibrate with a smaller geometry.cube_px), fewer bands, or a smaller border_mm.", device)
 
 
 def pixel_rms(problem: LevelProblem, ev) -> torch.Tensor:

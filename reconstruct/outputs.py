@@ -5,26 +5,37 @@
 factor), ``flags`` (bit field, meanings in the header attribute ``flag_bits`` and in ``fit.json``) and
 ``sigma_<param>`` (one standard deviation per parameter, NaN where the pixel was not in the loss).
 ``fit_settings.yaml`` is the resolved settings: ``skinlayers reconstruct --config`` on it re-makes the fit.
+
+``reconstruct_cube`` is the whole job the command runs: the output folder claimed before the fit
+(``formats.outputs``: never inside a session, nothing replaced without ``force``, one run at a time),
+the fit, the four files written into its staging area and moved into place, ``fit.json`` last.
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Callable
 
 import torch
 import yaml
 
+from ..formats.cube import read_cube
 from ..formats.files import atomic_write
+from ..formats.outputs import claim_outputs
 from ..formats.version import software_version
 from ..model import PARAMETER_NAMES
 from ..model.maps_io import write_maps
 from .checks import FLAG_BITS
-from .fit import MapFit
+from .fit import MapFit, fit_cube
 from .settings import FitSettings
 from .stats import correlations, pca_explained, residual_stats, trimmed_stats
 
-__all__ = ["fit_summary", "write_outputs"]
+__all__ = ["MARKER", "OUTPUT_NAMES", "fit_summary", "reconstruct_cube", "write_outputs"]
+
+#: What a fit writes; ``fit.json`` last: its presence marks a complete reconstruction.
+MARKER = "fit.json"
+OUTPUT_NAMES = ("maps.exr", "fit_settings.yaml", "report.png", MARKER)
 
 
 def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
@@ -73,6 +84,20 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
         "history": [[round(t, 3), loss, level] for t, loss, level in fit.history],
         "settings": settings.model_dump(mode="json"),
     }
+
+
+def reconstruct_cube(
+    cube_path: str | Path, out_dir: str | Path, settings: FitSettings, *, device: str = "auto", force: bool = False,
+    progress: Callable | None = None,
+) -> tuple[MapFit, dict[str, Path]]:
+    """Fit the cube at ``cube_path`` and write the outputs into ``out_dir``; the fit and the files' final
+    paths by kind. ``progress``: ``fit_cube``'s callback."""
+    out = Path(out_dir)
+    with claim_outputs(out, OUTPUT_NAMES, force=force, marker=MARKER, what="reconstruction") as staging:
+        cube = read_cube(cube_path)
+        fit = fit_cube(cube, settings, device=device, progress=progress)
+        written = write_outputs(fit, settings, staging.staging, source=str(cube_path))
+    return fit, {kind: out / path.name for kind, path in written.items()}
 
 
 def write_outputs(fit: MapFit, settings: FitSettings, out_dir: str | Path, source: str = "", measured: torch.Tensor | None = None) -> dict[str, Path]:

@@ -48,11 +48,12 @@ class FitSettings(Strict):
         description="homogeneous: a point-spectrum fit of every pixel of the coarsest level; paper: DWRR08's pale skin.",
     )
     coarsest_px: int = Field(
-        64, ge=0, description="Coarse-to-fine: halve the cube while its longer side exceeds this (0: fit the full grid only)."
+        64, ge=0, le=4096, description="Coarse-to-fine: halve the cube while its longer side exceeds this (0: fit the full grid only)."
     )
     border_mm: float = Field(
         3.0,
         ge=0,
+        le=20,
         description=(
             "Occluded skin simulated beyond the window (mm): light that enters through the window and travels under "
             "the tape comes back into the edge pixels. The default keeps every visible pixel within a tenth of the "
@@ -66,6 +67,7 @@ class FitSettings(Strict):
     band_fwhm_nm: float | None = Field(
         None,
         ge=0,
+        le=100,
         description=(
             "Width of every band's filter (Gaussian FWHM, nm), replacing the cube header's per-band widths (the rig's), "
             "modelled by a per-pixel band-mean correction; default: the header's, else 10 (DWRR08 §6.1: 10-nm band-pass "
@@ -96,7 +98,7 @@ class FitSettings(Strict):
             "more than a calibration error would (docs/reconstruct.md, \"Measured\")."
         ),
     )
-    max_iterations: int = Field(60, ge=1, description="Iteration cap per level (a safety net: the convergence test stops first).")
+    max_iterations: int = Field(60, ge=1, le=10000, description="Iteration cap per level (a safety net: the convergence test stops first).")
     ftol: float = Field(
         1e-3,
         gt=0,

@@ -17,6 +17,7 @@ import typer
 
 from .formats.cube import CUBE_NAME
 from .formats.errors import InputError
+from .formats.outputs import refuse_inside_session
 from .formats.version import software_version
 
 __all__ = ["accuracy_against_truth", "demo", "register"]
@@ -158,6 +159,8 @@ def demo(
         from .acquire.scene import load_scene  # noqa: PLC0415
 
         load_scene(scene)
+    if out is not None:
+        refuse_inside_session(out, "demo")
     if out is not None and out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"{out}: exists and is not empty; the demo writes into a fresh folder")
     folder = out if out is not None else fresh_folder(Path(DEFAULT_FOLDER))
@@ -181,7 +184,7 @@ def demo(
     _calibrate(session, calibrated)
     times["calibrate_s"] = time.perf_counter() - t
     t = step(f"3/4 reconstruct → {reconstruction}")
-    _reconstruct(calibrated / CUBE_NAME, reconstruction, device)
+    _reconstruct(calibrated / CUBE_NAME, reconstruction, device, len(rig.bands))
     times["reconstruct_s"] = time.perf_counter() - t
     t = step("4/4 report: the fit against the simulation's truth")
     accuracy = accuracy_against_truth(session, reconstruction, calibrated / CUBE_NAME)
@@ -222,16 +225,13 @@ def _calibrate(session: Path, calibrated: Path) -> None:
     print_summary(result.report, result)
 
 
-def _reconstruct(cube_path: Path, reconstruction: Path, device: str) -> None:
-    from .formats.cube import read_cube  # noqa: PLC0415
-    from .reconstruct import fit_cube, load_fit_settings, write_outputs  # noqa: PLC0415
+def _reconstruct(cube_path: Path, reconstruction: Path, device: str, bands: int) -> None:
+    from .reconstruct import load_fit_settings, reconstruct_cube  # noqa: PLC0415
     from .reconstruct.cli import fit_progress, print_fit_summary  # noqa: PLC0415
 
     settings = load_fit_settings(None)
-    cube = read_cube(cube_path)
-    with fit_progress(settings, cube.shape[0]) as on_event:
-        fit = fit_cube(cube, settings, device=device, progress=on_event)
-    write_outputs(fit, settings, reconstruction, source=str(cube_path))
+    with fit_progress(settings, bands) as on_event:
+        fit, _ = reconstruct_cube(cube_path, reconstruction, settings, device=device, progress=on_event)
     print_fit_summary(fit, settings)
 
 

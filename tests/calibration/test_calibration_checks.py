@@ -8,6 +8,7 @@ import pytest
 
 from skinlayers.formats.files import file_sha256
 from skinlayers.formats.manifest import read_manifest, write_manifest
+from skinlayers.formats.outputs import OutputError
 from skinlayers.calibration import (
     BandMissingError,
     CalibrationError,
@@ -120,11 +121,11 @@ def test_gray_card_region_unknown_or_saturated(session_copy, tmp_path, synth):
 
 
 def test_output_folder_inside_the_session_or_already_used(session_copy, tmp_path):
-    with pytest.raises(CalibrationError, match="inside the session folder"):
+    with pytest.raises(OutputError, match="inside the session"):
         calibrate_session(session_copy.path, session_copy.path / "calibrated")
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "cube.exr").write_bytes(b"earlier")
-    with pytest.raises(FileExistsError, match="already holds a calibration.*--force"):
+    with pytest.raises(FileExistsError, match="already holds cube.exr.*--force"):
         calibrate_session(session_copy.path, tmp_path / "out")
 
 

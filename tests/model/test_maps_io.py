@@ -52,7 +52,7 @@ def test_spectral_round_trip(tmp_path):
         ({"C_hd": np.full((6, 5), -0.01, np.float32)}, {"mm_per_pixel": 0.03}, "channel C_hd spans -0.01"),
         ({"C_m": np.full((6, 5), 0.9, np.float32), "C_he": np.full((6, 5), 0.2, np.float32)}, {"mm_per_pixel": 0.03},
          "C_m + C_he + C_bc exceeds 1"),
-        ({}, {"mm_per_pixel": -1.0}, "mm_per_pixel must be a positive"),
+        ({}, {"mm_per_pixel": -1.0}, "mm_per_pixel must be a pixel size of"),
     ],
 )
 def test_bad_map_files_are_refused(tmp_path, override, attrs, needle):

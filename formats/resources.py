@@ -1,0 +1,61 @@
+"""Refusing work that cannot fit in memory before it starts, with the numbers and what to change.
+
+A command that would need more memory than the machine has left ends in the kernel's OOM killer or in
+an allocation traceback hours later; here each large piece of work estimates what it needs from its
+sizes (``model.renderer.render_bytes``, the calibration's stacks, …) and ``require_memory`` refuses it
+when the estimate exceeds what is available, naming both and the setting to change.
+"""
+
+from __future__ import annotations
+
+import os
+
+from .errors import InputError
+
+__all__ = ["ResourceError", "available_memory_bytes", "format_bytes", "require_memory"]
+
+#: Work may take at most this share of the memory available when it starts (the rest: the process's
+#: own tensors, the allocator's slack, other programs).
+USABLE_SHARE = 0.8
+
+
+class ResourceError(InputError):
+    """Work that would not fit in this machine's memory; the message names what it needs and what to change."""
+
+
+def available_memory_bytes(device=None) -> int | None:
+    """Memory available for new work: on a CUDA device its free memory, else the system's
+    ``MemAvailable`` (Linux) or free physical pages; None where neither is known."""
+    if device is not None and getattr(device, "type", str(device)).startswith("cuda"):
+        import torch  # noqa: PLC0415
+
+        free, _ = torch.cuda.mem_get_info(device)
+        return int(free)
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def format_bytes(n: float) -> str:
+    """``n`` bytes in MB, GB or TB, to three digits."""
+    for unit, size in (("TB", 1 << 40), ("GB", 1 << 30), ("MB", 1 << 20)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{n / (1 << 20):.2g} MB"
+
+
+def require_memory(need_bytes: float, what: str, advice: str, device=None) -> None:
+    """``ResourceError`` when ``need_bytes`` exceeds the usable share of the memory available now."""
+    available = available_memory_bytes(device)
+    if available is not None and need_bytes > USABLE_SHARE * available:
+        raise ResourceError(
+            f"{what} needs about {format_bytes(need_bytes)} of memory; {format_bytes(available)} are available here. {advice}"
+        )
