@@ -30,12 +30,13 @@ from typing import Callable, Literal, Optional
 import numpy as np
 import torch
 
-from ..model.illumination import Light
-from ..model.maps import SkinMaps
 from ..formats.exr import write_spectral
 from ..formats.files import atomic_write
+from ..formats.resources import require_memory
+from ..model.illumination import Light
+from ..model.maps import SkinMaps
 from ..model.maps_io import write_maps
-from ..model.renderer import SkinRenderer
+from ..model.renderer import SkinRenderer, render_bytes
 from ..model.settings import ModelSettings
 from ._optics import (BandSpectrum, CameraGeometry, band_spectrum, bilinear, gaussian_blur, sample_points, sensor_geometry,
                       to_subject, vignetting)
@@ -112,6 +113,7 @@ class SimulatedBench:
                                                        s.flash.temperature_k, sens) for b in self.rig.bands}
         reference = band_spectrum(550.0, 10.0, s.filters.wavelength_samples, s.flash.temperature_k, sens)
         self._reference_signal = reference.channel_signal[1]  # green, 10-nm filter at 550 nm: white_electrons' unit
+        self._require_memory()
         self._by_position = {b.filter_position: b for b in self.rig.bands}
         self.white_electrons = s.sensor.white_electrons or self._flash_power()
         self._vignetting = vignetting(self.geometry, s.camera.vignetting, torch.float32, self.device)
@@ -120,6 +122,17 @@ class SimulatedBench:
         self._counts: Counter = Counter()
         self.target: Target = "skin"
         self.frames: list[SimulatedFrame] = []
+
+    def _require_memory(self) -> None:
+        """Refuse, before any session starts, a truth grid whose band renders would not fit in memory
+        (each band is rendered once at its filter's nodes and kept)."""
+        nodes = max(len(sp.nodes_nm) for sp in self.spectra.values())
+        mm, n = self.truth_mm_per_pixel, self.truth_size_px
+        border = Light("window", size_mm=self.rig.geometry.window_mm, border_mm=self.settings.truth.border_mm).border_px(mm)
+        render = render_bytes(1, nodes, n, n, border, weight_cache_mb=self.renderer.settings.render.weight_cache_mb)
+        kept = len(self.spectra) * 4 * n * n * 4  # each band's three channels and truth, float32
+        require_memory(render + kept, f"simulating a {n}×{n} px truth grid at {len(self.spectra)} bands",
+                       "Lower the rig's geometry.cube_px or the simulation's truth.oversample.", self.device)
 
     def _flash_power(self) -> float:
         """``white_electrons`` at which the brightest reference frame of the rig (Spectralon at the image

@@ -28,6 +28,8 @@ __all__ = ["MANIFEST_NAME", "SCHEMA_VERSION", "Exposure", "FrameRecord", "Manife
            "write_manifest"]
 
 MANIFEST_NAME = "manifest.json"
+#: The largest manifest read (a session of ten thousand frames writes about 5 MB).
+MAX_MANIFEST_BYTES = 64 << 20
 SCHEMA_VERSION = 1
 Role = Literal["dark", "reference", "skin"]
 
@@ -117,6 +119,8 @@ def read_manifest(session: str | Path) -> Manifest:
     path = Path(session) / MANIFEST_NAME
     if not path.exists():
         raise ManifestError(f"{Path(session)}: not a session folder (no {MANIFEST_NAME})")
+    if path.stat().st_size > MAX_MANIFEST_BYTES:
+        raise ManifestError(f"{path}: larger than {MAX_MANIFEST_BYTES >> 20} MB; a session's manifest is a few kB per frame")
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError) as exc:

@@ -172,8 +172,10 @@ def _lock(path: Path) -> Path:
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
             holder = _holder(path)
-            if holder is None:  # its process is gone: a run that was killed
+            if holder is None:  # its process is gone: a run that was killed, whose staging area is junk
                 path.unlink(missing_ok=True)
+                for stale in path.parent.glob(_STAGING_PREFIX + "*"):
+                    shutil.rmtree(stale, ignore_errors=True)
                 continue
             raise OutputError(f"{path.parent}: another run ({holder}) is writing here; wait for it, or choose another -o "
                               f"(if no run is active, remove {path})") from None

@@ -24,6 +24,8 @@ __all__ = ["COLOUR_WAVELENGTHS_NM", "parse_wavelengths", "register"]
 #: Colour is always computed from the model's spectrum at these wavelengths, whatever is printed.
 COLOUR_WAVELENGTHS_NM = torch.arange(380.0, 782.0, 2.0, dtype=torch.float64)
 DEFAULT_PRESET = "III interior"
+#: The most wavelengths a command renders or tabulates (380–800 nm every 0.2 nm).
+MAX_WAVELENGTHS = 2101
 
 
 def parse_wavelengths(text: str) -> torch.Tensor:
@@ -35,10 +37,10 @@ def parse_wavelengths(text: str) -> torch.Tensor:
             if len(parts) != 3:
                 raise ValueError
             start, stop, step = parts
-            if step <= 0 or stop < start:
+            if not all(map(math.isfinite, parts)) or step <= 0 or stop < start:
                 raise ValueError
             n = int(math.floor((stop - start) / step + 1e-9)) + 1
-            values = [start + i * step for i in range(n)]
+            values = [start + i * step for i in range(min(n, MAX_WAVELENGTHS + 1))]
         else:
             values = [float(p) for p in text.split(",") if p.strip()]
     except ValueError:
@@ -47,6 +49,8 @@ def parse_wavelengths(text: str) -> torch.Tensor:
         ) from None
     if not values:
         raise InputError("--wavelengths: no wavelengths given")
+    if len(values) > MAX_WAVELENGTHS:
+        raise InputError(f"--wavelengths {text!r}: more than {MAX_WAVELENGTHS} wavelengths (380–800 nm every 0.2 nm is the most)")
     if any(not math.isfinite(v) for v in values):
         raise InputError("--wavelengths: values must be finite numbers")
     if sorted(set(values)) != values:

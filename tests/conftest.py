@@ -1,11 +1,18 @@
 """Shared test set-up: every test builds its Gaussian tables in one temporary cache, never in ~/.cache;
-``run_cli`` runs the ``skinlayers`` command in the test's process."""
+``run_cli`` runs the ``skinlayers`` command in the test's process; the transport reference
+(``tests/model/transport_reference.py``), which the model's tests and the transport chart both use,
+is importable as ``transport_reference`` (the test folders are not packages)."""
 
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import pytest
+
+_MODEL_TESTS = str(Path(__file__).resolve().parent / "model")
+if _MODEL_TESTS not in sys.path:
+    sys.path.insert(0, _MODEL_TESTS)
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -119,9 +119,10 @@ def test_a_lock_left_by_a_killed_run_is_taken_over(tmp_path):
     folder.mkdir()
     dead = 2**22 + 12345  # above Linux's default pid_max: no such process
     (folder / ".skinlayers.lock").write_text(f"{os.uname().nodename} {dead}\n")
+    (folder / ".staging-killed").mkdir()  # what the killed run was writing
     with claim_outputs(folder, ["a.txt"]) as staging:
         staging.path("a.txt").write_text("taken over")
-    assert (folder / "a.txt").read_text() == "taken over"
+    assert sorted(p.name for p in folder.iterdir()) == ["a.txt"] and (folder / "a.txt").read_text() == "taken over"
 
 
 def test_a_failed_run_leaves_what_was_there(tmp_path):
@@ -345,3 +346,28 @@ def test_every_output_file_is_readable_by_all(maps_file, tmp_path, run_cli):
     for name in ("out.exr", "out.png"):
         assert (tmp_path / name).stat().st_mode & 0o777 == 0o644, name
     assert maps_file.stat().st_mode & 0o777 == 0o644
+
+
+@pytest.mark.parametrize("text", ["400:700:1e-9", "400:inf:5", "nan,500"])
+def test_wavelength_lists_are_bounded_and_finite(run_cli, text):
+    code, _, err = run_cli("spectrum", "--wavelengths", text, "--json")
+    assert code == 1 and "--wavelengths" in err
+    _one_line(err)
+
+
+def test_a_simulated_rig_too_large_to_render_is_refused_before_the_session(tmp_path, run_cli, monkeypatch):
+    import skinlayers.formats.resources as resources
+
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda device=None: 50 << 20)
+    code, _, err = run_cli("capture", "--sim", "--yes", "-o", str(tmp_path / "s"))
+    assert code == 1 and "simulating a" in err and "truth grid" in err
+    _one_line(err)
+    assert not (tmp_path / "s").exists()
+
+
+def test_an_oversized_manifest_is_refused(tmp_path):
+    from skinlayers.formats.manifest import MAX_MANIFEST_BYTES, ManifestError, read_manifest
+
+    (tmp_path / "manifest.json").write_bytes(b" " * (MAX_MANIFEST_BYTES + 1))
+    with pytest.raises(ManifestError, match="larger than"):
+        read_manifest(tmp_path)

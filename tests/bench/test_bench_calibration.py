@@ -12,7 +12,6 @@ share of the total.
 
 from __future__ import annotations
 
-import csv
 import os
 import platform
 import statistics
@@ -25,13 +24,10 @@ import torch
 from skinlayers.calibration import CalibrationSettings, calibrate_session
 from skinlayers.calibration import window as window_module
 
+from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+
 pytestmark = pytest.mark.bench
 
-
-def _out_dir() -> Path:
-    d = Path(os.environ.get("SKINLAYERS_BENCH_DIR", "bench_results"))
-    d.mkdir(parents=True, exist_ok=True)
-    return d
 
 
 def _session(tmp_path: Path) -> Path:
@@ -84,13 +80,6 @@ def test_calibration_speed(tmp_path, monkeypatch):
     context = (f"{platform.processor() or platform.machine()}, torch threads {torch.get_num_threads()}, "
                f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; "
                f"{cube.shape[0]} bands, cube {cube.shape[1]}², session {session}")
-    path = _out_dir() / "calibration_speed.csv"
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"\n{path} ({context}):")
-    for r in rows:
-        print(f"  {r['stage']:<24} {r['median_s']:>7.3f} s  (min {r['min_s']:.3f})  {r['share']:>6}")
+    write_csv("calibration_speed.csv", rows, context)
     assert stages["total"] and all(v >= 0 for values in stages.values() for v in values)
     assert cube.shape == (9, 256, 256)

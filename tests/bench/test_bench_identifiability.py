@@ -17,8 +17,6 @@ Writes ``identifiability.csv``. The bound scales with the noise: ×0.1 noise, ×
 from __future__ import annotations
 
 import csv
-import os
-from pathlib import Path
 
 import pytest
 import torch
@@ -29,17 +27,14 @@ from skinlayers.model.illumination import Light
 from skinlayers.model.maps import SkinMaps
 from skinlayers.model.renderer import SkinRenderer
 
+from bench_io import out_dir  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+
 pytestmark = pytest.mark.bench
 
 BANDS_NM = (430.0, 460.0, 490.0, 520.0, 550.0, 580.0, 610.0, 640.0, 670.0)
 #: RMS of (calibrated cube − truth) per band, default simulated session (measured, see the docstring)
 CAMERA_NOISE = (0.0043, 0.0034, 0.0033, 0.0031, 0.0032, 0.0036, 0.0049, 0.0078, 0.0155)
 
-
-def out_dir() -> Path:
-    d = Path(os.environ.get("SKINLAYERS_BENCH_DIR", "bench_results"))
-    d.mkdir(parents=True, exist_ok=True)
-    return d
 
 
 def bound(size: int = 64, block: int = 4, noise_factor: float = 1.0) -> dict[str, dict[str, float]]:

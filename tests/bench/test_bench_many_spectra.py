@@ -21,6 +21,8 @@ from pathlib import Path
 
 import pytest
 
+from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+
 pytestmark = pytest.mark.bench
 
 NIST = Path(__file__).resolve().parents[1] / "data" / "nist_skin_reflectance_forearm_avg_370-830nm.csv"
@@ -56,7 +58,7 @@ def _run(path: Path) -> tuple[float, float, dict]:
     return seconds, peak / 1024.0, json.loads(proc.stdout)["summary"]
 
 
-def test_many_spectra(tmp_path, bench_csv):
+def test_many_spectra(tmp_path):
     rows = []
     for count in COUNTS:
         seconds, peak_mb, summary = _run(_tiled(count, tmp_path))
@@ -65,6 +67,6 @@ def test_many_spectra(tmp_path, bench_csv):
     k = math.log(rows[-1]["wall_s"] / rows[0]["wall_s"]) / math.log(COUNTS[-1] / COUNTS[0])
     for r in rows:
         r["time_exponent"] = round(k, 3)
-    bench_csv("many_spectra.csv", rows)
+    write_csv("many_spectra.csv", rows)
     assert all(r["peak_rss_mb"] < PEAK_LIMIT_MB for r in rows), rows
     assert len({r["median_rms"] for r in rows}) == 1  # tiling the same 100 spectra: the same fits at every count

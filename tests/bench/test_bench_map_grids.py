@@ -14,7 +14,6 @@ the fit (one thread), median errors against the truth away from the high-residua
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import time
@@ -22,6 +21,8 @@ from pathlib import Path
 
 import pytest
 import torch
+
+from bench_io import out_dir, write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
 
 pytestmark = pytest.mark.bench
 
@@ -43,17 +44,6 @@ MODELS = [
 ]
 
 
-def out_dir() -> Path:
-    d = Path(os.environ.get("SKINLAYERS_BENCH_DIR", "bench_results"))
-    d.mkdir(parents=True, exist_ok=True)
-    return d
-
-
-def _write_csv(name: str, rows: list[dict]) -> None:
-    with (out_dir() / name).open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
 
 
 def _session(folder: Path, size: int) -> Path:
@@ -117,7 +107,7 @@ def test_node_spacing_against_accuracy_and_time():
                "cpu_s": round(time.process_time() - c0, 1), **_errors(fit, cube_path.parents[1] / f"session{size}", cube)}
         rows.append(row)
         print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
-    _write_csv("map_grids.csv", rows)
+    write_csv("map_grids.csv", rows)
     _chart(rows, out_dir() / "map_grids.png")
     default = next(r for r in rows if r["model"].endswith("(default)"))
     paper = rows[0]
@@ -170,5 +160,5 @@ def test_time_against_session_size():
                "forward_renders": fit.counter.forward, **_errors(fit, cube_path.parents[1] / f"session{size}", cube)}
         rows.append(row)
         print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
-    _write_csv("fit_sizes.csv", rows)
+    write_csv("fit_sizes.csv", rows)
     assert all(r["residual_rms"] <= 1.2 * r["noise_rms"] for r in rows)

@@ -14,8 +14,6 @@ read ratios, not absolute numbers.
 
 from __future__ import annotations
 
-import csv
-import os
 import statistics
 import time
 from pathlib import Path
@@ -29,27 +27,13 @@ from skinlayers.model.tables import build_profile_tables
 from skinlayers.reconstruct import fit_spectra
 from skinlayers.reconstruct.spectra_io import read_spectra_csv
 
+from bench_io import out_dir, write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+
 pytestmark = pytest.mark.bench
 
 NIST = Path(__file__).resolve().parents[1] / "data" / "nist_skin_reflectance_forearm_avg_370-830nm.csv"
 
 
-def out_dir() -> Path:
-    d = Path(os.environ.get("SKINLAYERS_BENCH_DIR", "bench_results"))
-    d.mkdir(parents=True, exist_ok=True)
-    return d
-
-
-def write_csv(name: str, rows: list[dict]) -> Path:
-    path = out_dir() / name
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    print(f"\n{path}:")
-    for r in rows:
-        print("  " + ", ".join(f"{k}={v}" for k, v in r.items()))
-    return path
 
 
 def timed(fn, repeats: int = 3) -> float:

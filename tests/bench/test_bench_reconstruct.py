@@ -13,7 +13,6 @@ are process CPU seconds (robust to the other load on a shared machine) beside wa
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import subprocess
@@ -22,15 +21,12 @@ from pathlib import Path
 
 import pytest
 
+from bench_io import out_dir, write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+
 pytestmark = pytest.mark.bench
 
 HERE = Path(__file__).resolve().parent
 
-
-def out_dir() -> Path:
-    d = Path(os.environ.get("SKINLAYERS_BENCH_DIR", "bench_results"))
-    d.mkdir(parents=True, exist_ok=True)
-    return d
 
 
 def run(cfg: dict, timeout: int = 7200) -> dict:
@@ -41,13 +37,6 @@ def run(cfg: dict, timeout: int = 7200) -> dict:
         raise RuntimeError(proc.stderr[-2000:])
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
-
-def write_csv(name: str, rows: list[dict]) -> None:
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    with (out_dir() / name).open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
 
 
 def _time_to(history: list, loss: float) -> float | None:

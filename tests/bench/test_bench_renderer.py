@@ -13,7 +13,6 @@ Writes to ``bench_results/`` (or ``$SKINLAYERS_BENCH_DIR``):
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -22,16 +21,13 @@ from pathlib import Path
 import pytest
 import torch
 
+from bench_io import out_dir, write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+
 pytestmark = pytest.mark.bench
 
 HERE = Path(__file__).resolve().parent
 PAPER = {"size": 256, "mm": 7.5 / 256, "bands": 9, "border_mm": 10.0}
 
-
-def out_dir() -> Path:
-    d = Path(os.environ.get("SKINLAYERS_BENCH_DIR", "bench_results"))
-    d.mkdir(parents=True, exist_ok=True)
-    return d
 
 
 def run(cfg: dict, timeout: int = 3000) -> dict:
@@ -41,18 +37,6 @@ def run(cfg: dict, timeout: int = 3000) -> dict:
         raise RuntimeError(proc.stderr[-2000:])
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
-
-def write_csv(name: str, rows: list[dict]) -> None:
-    import csv
-
-    keys = sorted({k for r in rows for k in r}, key=lambda k: list(rows[0]).index(k) if k in rows[0] else 99)
-    with (out_dir() / name).open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
-    print(f"\n{out_dir() / name}:")
-    for r in rows:
-        print("  " + ", ".join(f"{k}={v}" for k, v in r.items()))
 
 
 #: The renderer as it stood before the speed work: no weight cache, no series closure, tolerance 1e-3.

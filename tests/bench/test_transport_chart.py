@@ -17,8 +17,6 @@ tables of ``docs/transport.md`` are printed.
 from __future__ import annotations
 
 import csv
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -29,13 +27,7 @@ pytest.importorskip("iadpython")
 pytestmark = pytest.mark.bench
 
 ROOT = Path(__file__).resolve().parents[2]
-_REFERENCE_PATH = ROOT / "tests" / "model" / "transport_reference.py"
-_spec = importlib.util.spec_from_file_location("skinlayers_tests_transport_reference", _REFERENCE_PATH)
-ref = sys.modules.get(_spec.name)
-if ref is None:
-    ref = importlib.util.module_from_spec(_spec)
-    sys.modules[_spec.name] = ref
-    _spec.loader.exec_module(ref)
+import transport_reference as ref  # noqa: E402 (tests/conftest.py puts tests/model on the path)
 
 Layer = ref.Layer
 SOURCE_DEPTHS = ("mean_free_path", "capped")

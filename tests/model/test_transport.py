@@ -16,22 +16,14 @@ Two parts:
 from __future__ import annotations
 
 import csv
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import pytest
 
 pytest.importorskip("iadpython")
 
-_REFERENCE_PATH = Path(__file__).resolve().with_name("transport_reference.py")
-_spec = importlib.util.spec_from_file_location("skinlayers_tests_transport_reference", _REFERENCE_PATH)
-ref = sys.modules.get(_spec.name)
-if ref is None:
-    ref = importlib.util.module_from_spec(_spec)
-    sys.modules[_spec.name] = ref
-    _spec.loader.exec_module(ref)
+import transport_reference as ref  # noqa: E402 (tests/conftest.py puts tests/model on the path)
 
 BASELINE = Path(__file__).resolve().parents[1] / "data" / "transport_baseline.csv"
 #: Allowed growth of |relative error|, absolute (0.005 = 0.5 percentage points).
