@@ -50,6 +50,9 @@ def capture(
     operator: str = typer.Option("", "--operator", help="Operator recorded in the manifest."),
     wheel_speed: float = typer.Option(1.0, "--sim-wheel-time", help="Simulated wheel: move time scale (0: instant)."),
     device: str = typer.Option("auto", "--device", help="Where the simulator renders: auto, cpu or cuda."),
+    physics: Optional[str] = typer.Option(
+        None, "--physics", help="Simulated skin rendered by diffusion (the model) or transport (the Monte Carlo reference; slow: use a small cube)."),
+    photons: Optional[int] = typer.Option(None, "--photons", help="--physics transport: photons per wavelength node of each band."),
 ) -> None:
     """Capture a session: a black frame, a Spectralon reference per band, the skin at every band.
 
@@ -58,15 +61,18 @@ def capture(
       skinlayers capture --rig my_rig.yaml --subject S01 --site "inner forearm" --out S01
       skinlayers capture --sim-camera --wheel-port /dev/pts/5 --out bench_test
       skinlayers capture --sim --out session1 --resume
+      skinlayers capture --sim --physics transport --photons 2000000 --rig small_rig.yaml --out mc_session
     """
     from .connect import open_devices  # noqa: PLC0415
     from .session import run_session  # noqa: PLC0415
+    from .simulation_settings import truth_overrides  # noqa: PLC0415
 
     rig, sim = _session_rig(out, sim, sim_camera, rig_file, wheel_port, resume)
+    truth = truth_overrides(physics, photons)
     start = time.perf_counter()
     try:
         with open_devices(rig, simulated=sim, scene=scene, simulation=sim_settings, seed=seed, wheel_time_scale=wheel_speed,
-                          wheel_port=wheel_port, device=None if device == "auto" else device) as devices:
+                          wheel_port=wheel_port, device=None if device == "auto" else device, truth=truth) as devices:
             typer.echo(f"wheel:  {devices.wheel.identify()}", err=True)
             typer.echo(f"camera: {devices.camera.identify()}", err=True)
             with capture_progress() as progress:

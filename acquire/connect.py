@@ -74,6 +74,7 @@ def open_devices(
     wheel_time_scale: float = 1.0,
     wheel_port: str | None = None,
     device: str | None = None,
+    truth: dict | None = None,
 ) -> Devices:
     """Open the instruments of ``rig`` (see the module docstring for which ones).
 
@@ -82,7 +83,8 @@ def open_devices(
     flash and motion; ``wheel_time_scale``: the simulated wheel's move times (0: instant); ``device``:
     where the simulator renders (None: CUDA when there is one). A wheel that is not simulated is opened
     on ``wheel_port``, else on ``rig.wheel.port`` (a resumed session keeps its recorded rig, whatever
-    port the wheel is on today)."""
+    port the wheel is on today). ``truth``: overrides of the simulation's ``truth`` settings (its physics,
+    photons)."""
     bench = None
     notes: dict = {}
     if simulated or rig.camera.driver == "simulated":
@@ -90,10 +92,13 @@ def open_devices(
         from .simulated import SimulatedBench  # noqa: PLC0415
         from .simulation_settings import load_simulation_settings  # noqa: PLC0415
 
-        bench = SimulatedBench(rig, load_scene(scene), load_simulation_settings(simulation), seed, device=device)
+        settings = load_simulation_settings(simulation, **({"truth": truth} if truth else {}))
+        bench = SimulatedBench(rig, load_scene(scene), settings, seed, device=device)
         rig = bench.rig_as_used()
         notes = {"seed": seed, "scene": str(scene or "configs/scene.yaml (embedded)"),
-                 "simulation": str(simulation or "configs/simulation.yaml (embedded)")}
+                 "simulation": str(simulation or "configs/simulation.yaml (embedded)"), "truth_physics": settings.truth.physics}
+        if settings.truth.physics == "transport":
+            notes["truth_photons_per_node"] = settings.truth.photons
     wheel = _wheel(rig, simulated, wheel_time_scale, wheel_port or rig.wheel.port)
     try:
         camera = _camera(rig, bench, wheel)

@@ -37,6 +37,7 @@ from ..model.illumination import Light
 from ..model.maps import SkinMaps
 from ..model.maps_io import write_maps
 from ..model.renderer import SkinRenderer, render_bytes
+from ..model.transport import BYTES_PER_PHOTON, TransportRenderer
 from ..model.settings import ModelSettings
 from ._optics import (BandSpectrum, CameraGeometry, band_spectrum, bilinear, gaussian_blur, sample_points, sensor_geometry,
                       to_subject, vignetting)
@@ -71,12 +72,14 @@ class SimulatedFrame:
 @dataclass(frozen=True)
 class BandRender:
     """A band's skin on the truth grid: per channel the band-weighted reflectance factor ``(3, N, N)``
-    and the truth, weighted by the four Bayer positions together ``(N, N)``."""
+    and the truth, weighted by the four Bayer positions together ``(N, N)``; rendered by transport, the
+    truth's Monte Carlo standard error ``(N, N)``."""
 
     spectrum: BandSpectrum
     channels: torch.Tensor
     truth: torch.Tensor
     seconds: float
+    truth_std_error: torch.Tensor | None = None
 
 
 class SimulatedBench:
@@ -129,7 +132,10 @@ class SimulatedBench:
         nodes = max(len(sp.nodes_nm) for sp in self.spectra.values())
         mm, n = self.truth_mm_per_pixel, self.truth_size_px
         border = Light("window", size_mm=self.rig.geometry.window_mm, border_mm=self.settings.truth.border_mm).border_px(mm)
-        render = render_bytes(1, nodes, n, n, border, weight_cache_mb=self.renderer.settings.render.weight_cache_mb)
+        if self.settings.truth.physics == "transport":  # photons walk in batches: their memory, not the grid's
+            render = BYTES_PER_PHOTON * self.renderer.settings.transport.batch_photons
+        else:
+            render = render_bytes(1, nodes, n, n, border, weight_cache_mb=self.renderer.settings.render.weight_cache_mb)
         kept = len(self.spectra) * 4 * n * n * 4  # each band's three channels and truth, float32
         require_memory(render + kept, f"simulating a {n}×{n} px truth grid at {len(self.spectra)} bands",
                        "Lower the rig's geometry.cube_px or the simulation's truth.oversample.", self.device)
@@ -243,15 +249,25 @@ class SimulatedBench:
             spectrum = self.spectra[band_nm]
             start = time.perf_counter()
             light = Light("window", size_mm=self.rig.geometry.window_mm, border_mm=self.settings.truth.border_mm)
+            nodes = torch.tensor(spectrum.nodes_nm)
+            se = None
             with torch.no_grad():
-                image = self.renderer.render(
-                    self.scene_maps(), light, torch.tensor(spectrum.nodes_nm), under_gel=True, light_angle_deg=0.0,
-                    view_angle_deg=self.rig.camera.angle_deg,
-                ).image[0].to(torch.float64)
+                if self.settings.truth.physics == "transport":
+                    result = TransportRenderer(self.renderer.settings).render(
+                        self.scene_maps().to(dtype=torch.float64), light, nodes, photons=self.settings.truth.photons,
+                        seed=_transport_seed(self.seed, band_nm), view_angle_deg=self.rig.camera.angle_deg,
+                    )
+                    image, se = result.image[0], result.image_std_error[0]
+                else:
+                    image = self.renderer.render(
+                        self.scene_maps(), light, nodes, under_gel=True, light_angle_deg=0.0, view_angle_deg=self.rig.camera.angle_deg,
+                    ).image[0].to(torch.float64)
             w = torch.as_tensor(spectrum.weights / spectrum.weights.sum(axis=1, keepdims=True), device=image.device)
             channels = torch.einsum("ck,khw->chw", w, image).to(torch.float32)
-            truth = torch.einsum("k,khw->hw", torch.as_tensor(spectrum.truth_weights(), device=image.device), image)
-            self._renders[band_nm] = BandRender(spectrum, channels, truth.to(torch.float32), time.perf_counter() - start)
+            tw = torch.as_tensor(spectrum.truth_weights(), device=image.device)
+            truth = torch.einsum("k,khw->hw", tw, image)
+            truth_se = None if se is None else torch.einsum("k,khw->hw", tw**2, se**2).sqrt().to(torch.float32)  # independent nodes
+            self._renders[band_nm] = BandRender(spectrum, channels, truth.to(torch.float32), time.perf_counter() - start, truth_se)
         return self._renders[band_nm]
 
     def prepare(self, progress: Callable[[int, int], None] | None = None) -> None:
@@ -268,6 +284,15 @@ class SimulatedBench:
         cubes = [self.render_band(b.wavelength_nm).truth[m:m + n, m:m + n] for b in self.rig.bands]
         return torch.nn.functional.avg_pool2d(torch.stack(cubes)[:, None].double(), k)[:, 0]
 
+    def truth_std_error(self) -> torch.Tensor | None:
+        """The truth's Monte Carlo standard error on the cube grid ``(L, cube_px, cube_px)`` (pixels of the
+        truth grid are independent: the box average divides it by the oversampling), None for diffusion."""
+        if self.settings.truth.physics != "transport":
+            return None
+        m, n, k = self._margin_px, self._window_px, self.settings.truth.oversample
+        se = torch.stack([self.render_band(b.wavelength_nm).truth_std_error[m:m + n, m:m + n] for b in self.rig.bands]).double()
+        return (torch.nn.functional.avg_pool2d((se**2)[:, None], k)[:, 0] / (k * k)).sqrt()
+
     def write_truth(self, folder: str | Path) -> list[Path]:
         """Write ``truth/maps.exr`` (the maps over the window, truth grid), ``truth/reflectance.exr``
         (``R_<nm>`` on the cube grid) and ``truth/simulation.json`` (seed, scene, settings, frames)."""
@@ -279,9 +304,17 @@ class SimulatedBench:
         attrs = {"software": "skinlayers simulated bench", "seed": str(self.seed)}
         paths = [write_maps(out / "maps.exr", window, attributes=attrs)]
         g = self.rig.geometry
-        paths.append(write_spectral(out / "reflectance.exr", self.truth_reflectance().float(),
-                                    torch.tensor(self.rig.wavelengths_nm), g.window_mm / g.cube_px, attributes=attrs))
-        record = {"seed": self.seed, "scene": self.scene.config.model_dump(mode="json"),
+        se = self.truth_std_error()
+        t = self.settings.truth
+        attrs = {**attrs, "physics": t.physics, **({"photons_per_node": str(t.photons)} if t.physics == "transport" else {})}
+        paths.append(write_spectral(out / "reflectance.exr", self.truth_reflectance().float(), torch.tensor(self.rig.wavelengths_nm),
+                                    g.window_mm / g.cube_px, attributes=attrs, extra=None if se is None else {"SE": se.float()}))
+        physics = {"physics": t.physics}
+        if se is not None:
+            physics.update(photons_per_node=t.photons, anisotropy=self.renderer.settings.transport.anisotropy,
+                           std_error_median_per_band={f"{w:g}": float(v.median()) for w, v in zip(self.rig.wavelengths_nm, se)},
+                           seconds_per_band={f"{b.wavelength_nm:g}": round(self.render_band(b.wavelength_nm).seconds, 1) for b in self.rig.bands})
+        record = {"seed": self.seed, "truth_physics": physics, "scene": self.scene.config.model_dump(mode="json"),
                   "settings": self.settings.model_dump(mode="json"), "rig": self.rig_as_used().model_dump(mode="json"),
                   "frames": [asdict(f) for f in self.frames]}
         paths.append(_write_json(out / "simulation.json", record))
@@ -354,6 +387,11 @@ class SimulatedBench:
         xu, yu = geo.unproject(u + 1.0, v)
         xv, yv = geo.unproject(u, v + 1.0)
         return ((xu - x0).abs() + (xv - x0).abs()) / n, ((yu - y0).abs() + (yv - y0).abs()) / n
+
+
+def _transport_seed(seed: int, band_nm: float) -> int:
+    """The photons of one band's truth: fixed by the session's seed and the band."""
+    return int(hashlib.sha256(f"transport {seed} {band_nm:g}".encode()).hexdigest()[:12], 16)
 
 
 def _frame_seed(seed: int, state: str, position: int, count: int) -> int:

@@ -12,10 +12,15 @@ from typing import Annotated, Literal, Optional
 
 from pydantic import Field, model_validator
 
-from ..formats.errors import SettingsError
+from ..formats.errors import InputError, SettingsError
 from ..formats.settings import Strict, load_settings, validate_settings
 
-__all__ = ["ChannelCurve", "SimulationError", "SimulationSettings", "load_simulation_settings", "simulation_from_dict"]
+__all__ = ["ChannelCurve", "SimulationError", "SimulationSettings", "TRUTH_PHYSICS", "load_simulation_settings", "simulation_from_dict",
+           "truth_overrides"]
+
+#: The light transport a simulated truth can be rendered with: the model's diffusion renderer, or the
+#: Monte Carlo transport reference (model/transport).
+TRUTH_PHYSICS = ("diffusion", "transport")
 
 
 class SimulationError(SettingsError):
@@ -148,6 +153,18 @@ class SimTruth(Strict):
     )
     identity_below_px: float = Field(0.0, ge=0, description="Gaussians narrower than this act as the identity.")
     series_tolerance: float = Field(1e-3, gt=0, lt=1, description="Light left in the inter-scattering series.")
+    physics: Literal["diffusion", "transport"] = Field(
+        "diffusion",
+        description=(
+            "The light transport of the truth: diffusion (the model's renderer, at the settings above) or transport "
+            "(the Monte Carlo reference, model/transport: physics the fit's model did not make; its noise is recorded "
+            "in the truth)."
+        ),
+    )
+    photons: int = Field(
+        1_000_000, ge=1000, le=10**10,
+        description="physics transport: photons per wavelength node of each band (a node's pixel noise falls as 1/√photons).",
+    )
 
 
 class SimulationSettings(Strict):
@@ -168,9 +185,20 @@ def default_simulation_path() -> Path:
     return config_path("simulation.yaml")
 
 
-def load_simulation_settings(path: str | Path | None = None) -> SimulationSettings:
-    """Settings of a YAML file (the embedded ``configs/simulation.yaml`` when ``path`` is None)."""
-    return load_settings(SimulationSettings, path, SimulationError, "simulation settings", default_path=default_simulation_path())
+def truth_overrides(physics: str | None, photons: int | None) -> dict:
+    """The ``truth`` settings a command's ``--physics`` and ``--photons`` change (for ``open_devices``)."""
+    if physics is not None and physics not in TRUTH_PHYSICS:
+        raise InputError(f"--physics {physics!r}: expected {' or '.join(TRUTH_PHYSICS)}")
+    if photons is not None and physics != "transport":
+        raise InputError("--photons goes with --physics transport")
+    return {k: v for k, v in (("physics", physics), ("photons", photons)) if v is not None}
+
+
+def load_simulation_settings(path: str | Path | None = None, **overrides) -> SimulationSettings:
+    """Settings of a YAML file (the embedded ``configs/simulation.yaml`` when ``path`` is None), with
+    ``overrides`` merged in (e.g. ``truth={"physics": "transport"}``)."""
+    return load_settings(SimulationSettings, path, SimulationError, "simulation settings", overrides,
+                         default_path=default_simulation_path())
 
 
 def simulation_from_dict(data: dict, source: str = "simulation settings") -> SimulationSettings:

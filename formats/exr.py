@@ -105,12 +105,15 @@ def band_channels(channels: dict[str, np.ndarray], prefix: str) -> list[tuple[fl
 
 
 def write_spectral(path: str | Path, image: torch.Tensor, wavelength_nm: torch.Tensor, mm_per_pixel: float,
-                   prefix: str = "R", attributes: dict | None = None) -> Path:
-    """Write ``(L, H, W)`` as channels ``<prefix>_<nm>`` with the wavelengths in the header."""
+                   prefix: str = "R", attributes: dict | None = None, extra: dict[str, torch.Tensor] | None = None) -> Path:
+    """Write ``(L, H, W)`` as channels ``<prefix>_<nm>`` with the wavelengths in the header; ``extra``:
+    more spectral images ``(L, H, W)`` by prefix (a Monte Carlo render's standard error, ``SE``)."""
     wl = [float(w) for w in torch.as_tensor(wavelength_nm).reshape(-1)]
     if image.ndim != 3 or image.shape[0] != len(wl):
         raise ValueError(f"spectral image must be (L, H, W) with L = {len(wl)}, got {tuple(image.shape)}")
     channels = {f"{prefix}_{w:g}": image[j] for j, w in enumerate(wl)}
+    for name, values in (extra or {}).items():
+        channels.update({f"{name}_{w:g}": values[j] for j, w in enumerate(wl)})
     return write_exr(path, channels, {"wavelengths_nm": wl, "mm_per_pixel": float(mm_per_pixel), **(attributes or {})})
 
 

@@ -26,6 +26,10 @@ COLOUR_WAVELENGTHS_NM = torch.arange(380.0, 782.0, 2.0, dtype=torch.float64)
 DEFAULT_PRESET = "III interior"
 #: The most wavelengths a command renders or tabulates (380–800 nm every 0.2 nm).
 MAX_WAVELENGTHS = 2101
+#: The light transport a command can use: the diffusion model, or the Monte Carlo reference.
+PHYSICS = ("diffusion", "transport")
+#: Photons per wavelength a Monte Carlo render may take.
+MIN_PHOTONS, MAX_PHOTONS = 1000, 10**10
 
 
 def parse_wavelengths(text: str) -> torch.Tensor:
@@ -99,6 +103,44 @@ def _spectrum_report(model: SkinModel, params: SkinParams, wavelengths: torch.Te
     }
 
 
+def _check_physics(physics: str, photons: Optional[int]) -> None:
+    if physics not in PHYSICS:
+        raise InputError(f"--physics {physics!r}: expected {' or '.join(PHYSICS)}")
+    if photons is not None and physics != "transport":
+        raise InputError("--photons goes with --physics transport")
+    if photons is not None and not MIN_PHOTONS <= photons <= MAX_PHOTONS:
+        raise InputError(f"--photons {photons}: expected {MIN_PHOTONS:,}–{MAX_PHOTONS:,} per wavelength")
+
+
+def _transport_spectrum_report(settings: ModelSettings, params: SkinParams, wavelengths: torch.Tensor, illuminant: str,
+                               photons: Optional[int], seed: int) -> dict:
+    """The spectrum by the Monte Carlo reference, its standard errors, and the colour of its samples."""
+    from rich.progress import Progress  # noqa: PLC0415
+
+    from .transport import TransportRenderer  # noqa: PLC0415
+
+    renderer = TransportRenderer(settings)
+    values, errors = [], []
+    with Progress(transient=True) as bar:
+        task = bar.add_task("transport (Monte Carlo)", total=wavelengths.numel())
+        for w in wavelengths:
+            totals = renderer.totals(params, w.reshape(1), photons=photons, seed=seed)
+            values.append(float(totals.reflectance[0]))
+            errors.append(float(totals.std_error[0]))
+            bar.advance(task)
+    refl = torch.tensor(values, dtype=torch.float64)
+    report = {
+        "wavelength_nm": [round(float(w), 6) for w in wavelengths], "reflectance": values, "std_error": errors,
+        "params": {n: float(getattr(params, n)) for n in PARAMETER_NAMES}, "illuminant": illuminant,
+        "physics": "transport", "photons": totals.photons, "anisotropy": settings.transport.anisotropy,
+    }
+    if wavelengths.numel() >= 2:
+        colour = ColourConverter(wavelengths, illuminant)
+        lab = colour.lab(refl)
+        report.update(srgb=[float(c) for c in colour.srgb(refl)], lab=[float(c) for c in lab], ita_deg=float(ita_degrees(lab)))
+    return report
+
+
 def _hex(rgb) -> str:
     return "#" + "".join(f"{int(round(255 * min(max(c, 0.0), 1.0))):02x}" for c in rgb)
 
@@ -117,6 +159,9 @@ def spectrum(
     force: bool = typer.Option(False, "--force", help="Replace the --plot file if it exists."),
     illuminant: str = typer.Option("D65", "--illuminant", help="CIE illuminant for sRGB and L*a*b*."),
     method: str = typer.Option("exact", "--method", help="exact (closed-form profiles) or tables (Gaussian tables)."),
+    physics: str = typer.Option("diffusion", "--physics", help="diffusion (the model) or transport (the Monte Carlo reference)."),
+    photons: Optional[int] = typer.Option(None, "--photons", help="--physics transport: photons per wavelength (default: the settings')."),
+    seed: int = typer.Option(0, "--seed", help="--physics transport: seed of the photons."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model settings YAML (configs/model.yaml)."),
 ) -> None:
     """Diffuse reflectance spectrum of homogeneous skin, with its sRGB and L*a*b* colour.
@@ -126,7 +171,14 @@ def spectrum(
     settings = load_model_settings(config)
     params = _params_from(preset, params_file, dict(C_m=C_m, beta_m=beta_m, C_he=C_he, C_bc=C_bc, C_hd=C_hd))
     model = SkinModel(settings)
-    report = _spectrum_report(model, params, parse_wavelengths(wavelengths), method, illuminant)
+    wl = parse_wavelengths(wavelengths)
+    _check_physics(physics, photons)
+    if physics == "transport":
+        if plot is not None and wl.numel() < 2:
+            raise InputError("--plot needs at least two wavelengths")
+        report = _transport_spectrum_report(settings, params, wl, illuminant, photons, seed)
+    else:
+        report = _spectrum_report(model, params, wl, method, illuminant)
     if plot is not None:
         _plot_spectra([("skin", report)], plot, title="Diffuse reflectance (normal incidence, specular excluded)", force=force)
     if as_json:
@@ -139,16 +191,22 @@ def spectrum(
     table = Table(title="Diffuse reflectance", show_header=True)
     table.add_column("λ (nm)", justify="right")
     table.add_column("R_d", justify="right")
-    for w, r in zip(report["wavelength_nm"], report["reflectance"]):
-        table.add_row(f"{w:g}", f"{r:.4f}")
+    errors = report.get("std_error") or [None] * len(report["reflectance"])
+    if report.get("std_error"):
+        table.add_column("± (MC)", justify="right")
+    for w, r, e in zip(report["wavelength_nm"], report["reflectance"], errors):
+        table.add_row(f"{w:g}", f"{r:.4f}", *([] if e is None else [f"{e:.4f}"]))
     console.print(table)
     p = report["params"]
     console.print("params: " + ", ".join(f"{k}={v:g}" for k, v in p.items()))
-    L, a, b = report["lab"]
-    console.print(
-        f"sRGB ({illuminant}): {_hex(report['srgb'])} = ({', '.join(f'{c:.3f}' for c in report['srgb'])});"
-        f" L*a*b* = ({L:.1f}, {a:.1f}, {b:.1f}); ITA = {report['ita_deg']:.1f}°"
-    )
+    if "lab" in report:
+        L, a, b = report["lab"]
+        console.print(
+            f"sRGB ({illuminant}): {_hex(report['srgb'])} = ({', '.join(f'{c:.3f}' for c in report['srgb'])});"
+            f" L*a*b* = ({L:.1f}, {a:.1f}, {b:.1f}); ITA = {report['ita_deg']:.1f}°"
+        )
+    if report.get("physics") == "transport":
+        console.print(f"Monte Carlo: {report['photons']:,} photons per wavelength, g = {report['anisotropy']:g}; ± one standard error")
     if plot is not None:
         console.print(f"figure: {plot}")
 
@@ -272,6 +330,9 @@ def render(
     device: str = typer.Option("auto", "--device", help="auto, cpu or cuda."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model settings YAML."),
     force: bool = typer.Option(False, "--force", help="Replace OUT.exr and OUT.png if they exist."),
+    physics: str = typer.Option("diffusion", "--physics", help="diffusion (the model's renderer) or transport (the Monte Carlo reference)."),
+    photons: Optional[int] = typer.Option(None, "--photons", help="--physics transport: photons per band (default: the settings')."),
+    seed: int = typer.Option(0, "--seed", help="--physics transport: seed of the photons."),
 ) -> None:
     """Render parameter maps with the heterogeneous layered model: a spectral EXR and an sRGB PNG.
 
@@ -283,7 +344,6 @@ def render(
     from ..formats.maps import read_absorbance  # noqa: PLC0415
     from ..formats.outputs import claim_outputs  # noqa: PLC0415
     from .maps_io import read_maps  # noqa: PLC0415
-    from .renderer import SkinRenderer  # noqa: PLC0415
 
     settings = load_model_settings(config)
     dev = _device(device)
@@ -302,27 +362,55 @@ def render(
         if abs(ink_mm - maps.mm_per_pixel) > 1e-6 * maps.mm_per_pixel:
             raise InputError(f"{tattoo}: mm_per_pixel {ink_mm:g} differs from the maps' {maps.mm_per_pixel:g}")
         maps = add_absorbance(maps, ink, ink_wl)
+    _check_physics(physics, photons)
     base = out.with_suffix("") if out.suffix.lower() in (".exr", ".png") else out
     names = [base.with_suffix(".exr").name] + ([base.with_suffix(".png").name] if wl.numel() >= 2 else [])
-    renderer = SkinRenderer(settings)
     with claim_outputs(base.parent, names, force=force, lock_name=f".{base.name}.lock", what="rendering") as staging:
         start = time.perf_counter()
-        images, terms = [], []
-        for group in _band_groups(maps, lit, wl, settings, dev):
-            result = renderer.render(
-                maps.to(dev), lit, wl[group], under_gel=gel, light_angle_deg=light_angle, view_angle_deg=view_angle, blur=blur
-            )
-            images.append(result.image[0].detach().cpu().double())
-            terms += result.terms
+        angles = dict(under_gel=gel, light_angle_deg=light_angle, view_angle_deg=view_angle)
+        if physics == "transport":
+            image, se, extra, how = _render_transport(maps.to(dev), lit, wl, settings, photons, seed, angles)
+        else:
+            (image, extra, how), se = _render_diffusion(maps.to(dev), lit, wl, settings, dev, blur, angles), None
         seconds = time.perf_counter() - start
-        image = torch.cat(images)
-        write_spectral(staging.path(names[0]), image, wl, maps.mm_per_pixel, attributes={"light": light, "software": "skinlayers"})
+        write_spectral(staging.path(names[0]), image, wl, maps.mm_per_pixel,
+                       attributes={"light": light, "software": "skinlayers", "physics": physics, **extra},
+                       extra=None if se is None else {"SE": se})
         if wl.numel() >= 2:
             _write_png(staging.path(names[1]), ColourConverter(wl, settings.illuminant).srgb(image.permute(1, 2, 0)))
     typer.echo(
         f"rendered {image.shape[1]}×{image.shape[2]} px at {wl.numel()} bands on {dev.type} in {seconds:.1f} s "
-        f"({max(terms)} inter-scattering terms): " + ", ".join(str(base.parent / n) for n in names)
+        f"({how}): " + ", ".join(str(base.parent / n) for n in names)
     )
+
+
+def _render_diffusion(maps, light, wl: torch.Tensor, settings: ModelSettings, device, blur, angles: dict):
+    """The diffusion renderer, in band groups that fit in memory: the image ``(L, H, W)``, header extras, a note."""
+    from .renderer import SkinRenderer  # noqa: PLC0415
+
+    renderer = SkinRenderer(settings)
+    images, terms = [], []
+    for group in _band_groups(maps, light, wl, settings, device):
+        result = renderer.render(maps, light, wl[group], blur=blur, **angles)
+        images.append(result.image[0].detach().cpu().double())
+        terms += result.terms
+    return torch.cat(images), {}, f"{max(terms)} inter-scattering terms"
+
+
+def _render_transport(maps, light, wl: torch.Tensor, settings: ModelSettings, photons, seed: int, angles: dict):
+    """The Monte Carlo reference: the image ``(L, H, W)``, its standard error ``(L, H, W)`` (written as
+    channels ``SE_<nm>``), the photons and seed for the header, a note."""
+    from rich.progress import Progress  # noqa: PLC0415
+
+    from .transport import TransportRenderer  # noqa: PLC0415
+
+    with Progress(transient=True) as bar:
+        task = bar.add_task("transport (Monte Carlo)", total=wl.numel())
+        result = TransportRenderer(settings).render(maps, light, wl, photons=photons, seed=seed, progress=lambda done, total: bar.update(task, completed=done), **angles)
+    se = result.image_std_error[0].cpu()
+    extra = {"photons_per_band": str(result.photons), "seed": str(seed), "anisotropy": str(settings.transport.anisotropy),
+             "std_error_median": [float(v) for v in se.reshape(se.shape[0], -1).median(1).values]}
+    return result.image[0].cpu(), se, extra, f"Monte Carlo, {result.photons:,} photons a band, median standard error {float(se.median()):.2g}"
 
 
 def _band_groups(maps, light, wl: torch.Tensor, settings: ModelSettings, device) -> list[slice]:

@@ -18,7 +18,7 @@ from pydantic import Field, field_validator, model_validator
 from ..formats.errors import SettingsError as BaseSettingsError
 from ..formats.settings import Strict, load_settings
 
-__all__ = ["ModelSettings", "RenderSettings", "SettingsError", "SkinOptics", "TableSettings", "load_model_settings"]
+__all__ = ["ModelSettings", "RenderSettings", "SettingsError", "SkinOptics", "TableSettings", "TransportSettings", "load_model_settings"]
 
 PAPER_RENDER_WAVELENGTHS_NM = [400.0 + 35.0 * i for i in range(8)]
 
@@ -162,12 +162,34 @@ class RenderSettings(Strict):
     )
 
 
+class TransportSettings(Strict):
+    """The Monte Carlo transport reference (``model/transport``): the truth the diffusion model is measured against."""
+
+    anisotropy: float = Field(
+        0.0, ge=0.0, lt=1.0,
+        description=(
+            "Henyey–Greenstein g. 0 with σs = σs′: the similarity case diffusion rests on (the same medium as the "
+            "model); skin's g ≈ 0.8 is the realistic one (σs = σs′ / (1 − g))."
+        ),
+    )
+    photons: int = Field(1_000_000, ge=1000, le=10**10, description="Photons per wavelength.")
+    batch_photons: int = Field(1 << 18, ge=256, le=1 << 24, description="Photons walked at once (memory: about 1.1 kB each).")
+    batches_min: int = Field(16, ge=4, le=1000, description="Batches at least (the standard error is the batches' spread).")
+    roulette_weight: float = Field(1e-4, gt=0, lt=1, description="Below this weight a photon survives Russian roulette 1 in 10.")
+    margin_mm: float = Field(
+        3.0, ge=0, le=20,
+        description="Uniform and striped light: also lit, this far beyond the maps (replicated skin), for the light that comes back into them.",
+    )
+    max_depth_mm: float = Field(50.0, gt=0, le=1000, description="A photon deeper than this in a semi-infinite dermis is dropped.")
+
+
 class ModelSettings(Strict):
     """Everything that shapes the model's output; saved beside results so they can be re-made."""
 
     optics: SkinOptics = SkinOptics()
     tables: TableSettings = TableSettings()
     render: RenderSettings = RenderSettings()
+    transport: TransportSettings = TransportSettings()
     render_wavelengths_nm: list[float] = Field(
         default_factory=lambda: list(PAPER_RENDER_WAVELENGTHS_NM),
         description="Wavelengths rendered for colour images (DWRR08 §7: 400, 435, …, 645 nm).",

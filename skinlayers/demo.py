@@ -24,6 +24,9 @@ __all__ = ["accuracy_against_truth", "demo", "register"]
 
 #: Folder the demo writes to when none is given; taken with a suffix (-2, -3, …) when it exists.
 DEFAULT_FOLDER = "skinlayers-demo"
+#: The coarsest rectified window the calibration works on: at 64 px the gray card's region, moved by the
+#: subject's motion, reaches into the window's (so --size 32 rectifies at 128 px, not 64).
+MIN_RECTIFY_PX = 128
 
 
 def fresh_folder(base: Path) -> Path:
@@ -141,20 +144,29 @@ def demo(
         help="Scene YAML (keys of configs/scene.yaml). Default: configs/scene.yaml without hairs (the acceptance scene: smooth "
              "variation, freckles, a scar, a vein).",
     ),
+    physics: str = typer.Option(
+        "diffusion", "--physics",
+        help="The simulated skin's light transport: diffusion (the fit's own model) or transport (the Monte Carlo reference: "
+             "the fit measured on physics it did not make; slow, use --size 32).",
+    ),
+    photons: Optional[int] = typer.Option(None, "--photons", help="--physics transport: photons per wavelength node of each band."),
 ) -> None:
     """Simulated capture → calibration → reconstruction → report, on embedded defaults.
 
     Example: skinlayers demo            (about four minutes on two CPU cores, the first time longer)
              skinlayers demo --size 64  (under a minute)
+             skinlayers demo --size 32 --physics transport --photons 200000   (the truth by Monte Carlo)
     """
     import yaml  # noqa: PLC0415
 
     from .acquire.rig import load_rig  # noqa: PLC0415
+    from .acquire.simulation_settings import truth_overrides  # noqa: PLC0415
 
     if size < 16 or size % 8:
         raise InputError(f"--size {size}: expected a multiple of 8, at least 16 (e.g. 64, 128, 256)")
     if device not in ("cpu", "cuda", "auto"):
         raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
+    truth = truth_overrides(physics, photons)
     if scene is not None:  # a bad scene file is refused before any folder is made
         from .acquire.scene import load_scene  # noqa: PLC0415
 
@@ -166,7 +178,7 @@ def demo(
     folder = out if out is not None else fresh_folder(Path(DEFAULT_FOLDER))
     folder.mkdir(parents=True, exist_ok=True)
     session, calibrated, reconstruction = folder / "session", folder / "calibrated", folder / "reconstruction"
-    rig = load_rig(geometry={"cube_px": size, "rectify_px": 2 * size}, camera={"driver": "simulated"})
+    rig = load_rig(geometry={"cube_px": size, "rectify_px": max(2 * size, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
     (folder / "rig.yaml").write_text(yaml.safe_dump(rig.model_dump(mode="json"), sort_keys=False))
     if scene is None:
         scene = folder / "scene.yaml"
@@ -178,7 +190,7 @@ def demo(
         return time.perf_counter()
 
     t = step(f"1/4 capture (simulated rig, seed {seed}) → {session}")
-    _capture(session, rig, scene, seed, device)
+    _capture(session, rig, scene, seed, device, truth)
     times["capture_s"] = time.perf_counter() - t
     t = step(f"2/4 calibrate → {calibrated}")
     _calibrate(session, calibrated)
@@ -201,14 +213,14 @@ def demo(
     typer.echo("times: " + ", ".join(f"{k[:-2]} {v:.0f} s" for k, v in times.items()))
 
 
-def _capture(session: Path, rig, scene: Path, seed: int, device: str) -> None:
+def _capture(session: Path, rig, scene: Path, seed: int, device: str, truth: dict) -> None:
     """A simulated session on the instant simulated wheel, its truth beside the frames."""
     from .acquire.cli import capture_progress  # noqa: PLC0415
     from .acquire.connect import open_devices  # noqa: PLC0415
     from .acquire.session import AutoOperator, run_session  # noqa: PLC0415
 
     with open_devices(rig, simulated=True, scene=scene, seed=seed, wheel_time_scale=0.0,
-                      device=None if device == "auto" else device) as devices, capture_progress() as progress:
+                      device=None if device == "auto" else device, truth=truth) as devices, capture_progress() as progress:
         run_session(session, devices.rig, devices.wheel, devices.camera, AutoOperator(devices.place), subject="demo",
                     site="simulated forearm", operator_name="skinlayers demo", simulated=True, notes=devices.notes,
                     software_version=software_version(), progress=progress)
