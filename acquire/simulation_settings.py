@@ -12,15 +12,13 @@ from typing import Annotated, Literal, Optional
 
 from pydantic import Field, model_validator
 
-from ..formats.errors import InputError, SettingsError
+from ..formats.errors import SettingsError
 from ..formats.settings import Strict, load_settings, validate_settings
+from ..model.settings import MAX_PHOTONS, MIN_PHOTONS
+from ..model.transport import check_physics_options
 
-__all__ = ["ChannelCurve", "SimulationError", "SimulationSettings", "TRUTH_PHYSICS", "load_simulation_settings", "simulation_from_dict",
+__all__ = ["ChannelCurve", "SimulationError", "SimulationSettings", "load_simulation_settings", "simulation_from_dict",
            "truth_overrides"]
-
-#: The light transport a simulated truth can be rendered with: the model's diffusion renderer, or the
-#: Monte Carlo transport reference (model/transport).
-TRUTH_PHYSICS = ("diffusion", "transport")
 
 
 class SimulationError(SettingsError):
@@ -162,7 +160,7 @@ class SimTruth(Strict):
         ),
     )
     photons: int = Field(
-        1_000_000, ge=1000, le=10**10,
+        1_000_000, ge=MIN_PHOTONS, le=MAX_PHOTONS,
         description="physics transport: photons per wavelength node of each band (a node's pixel noise falls as 1/√photons).",
     )
 
@@ -187,10 +185,7 @@ def default_simulation_path() -> Path:
 
 def truth_overrides(physics: str | None, photons: int | None) -> dict:
     """The ``truth`` settings a command's ``--physics`` and ``--photons`` change (for ``open_devices``)."""
-    if physics is not None and physics not in TRUTH_PHYSICS:
-        raise InputError(f"--physics {physics!r}: expected {' or '.join(TRUTH_PHYSICS)}")
-    if photons is not None and physics != "transport":
-        raise InputError("--photons goes with --physics transport")
+    check_physics_options(physics, photons)
     return {k: v for k, v in (("physics", physics), ("photons", photons)) if v is not None}
 
 

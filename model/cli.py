@@ -18,6 +18,7 @@ from .colour import ColourConverter, ita_degrees
 from .layered import SkinModel
 from .params import PARAMETER_NAMES, TABLE2, SkinParams
 from .settings import ModelSettings, load_model_settings
+from .transport import check_physics_options
 
 __all__ = ["COLOUR_WAVELENGTHS_NM", "parse_wavelengths", "register"]
 
@@ -26,10 +27,6 @@ COLOUR_WAVELENGTHS_NM = torch.arange(380.0, 782.0, 2.0, dtype=torch.float64)
 DEFAULT_PRESET = "III interior"
 #: The most wavelengths a command renders or tabulates (380–800 nm every 0.2 nm).
 MAX_WAVELENGTHS = 2101
-#: The light transport a command can use: the diffusion model, or the Monte Carlo reference.
-PHYSICS = ("diffusion", "transport")
-#: Photons per wavelength a Monte Carlo render may take.
-MIN_PHOTONS, MAX_PHOTONS = 1000, 10**10
 
 
 def parse_wavelengths(text: str) -> torch.Tensor:
@@ -103,15 +100,6 @@ def _spectrum_report(model: SkinModel, params: SkinParams, wavelengths: torch.Te
     }
 
 
-def _check_physics(physics: str, photons: Optional[int]) -> None:
-    if physics not in PHYSICS:
-        raise InputError(f"--physics {physics!r}: expected {' or '.join(PHYSICS)}")
-    if photons is not None and physics != "transport":
-        raise InputError("--photons goes with --physics transport")
-    if photons is not None and not MIN_PHOTONS <= photons <= MAX_PHOTONS:
-        raise InputError(f"--photons {photons}: expected {MIN_PHOTONS:,}–{MAX_PHOTONS:,} per wavelength")
-
-
 def _transport_spectrum_report(settings: ModelSettings, params: SkinParams, wavelengths: torch.Tensor, illuminant: str,
                                photons: Optional[int], seed: int) -> dict:
     """The spectrum by the Monte Carlo reference, its standard errors, and the colour of its samples."""
@@ -172,7 +160,7 @@ def spectrum(
     params = _params_from(preset, params_file, dict(C_m=C_m, beta_m=beta_m, C_he=C_he, C_bc=C_bc, C_hd=C_hd))
     model = SkinModel(settings)
     wl = parse_wavelengths(wavelengths)
-    _check_physics(physics, photons)
+    check_physics_options(physics, photons)
     if physics == "transport":
         if plot is not None and wl.numel() < 2:
             raise InputError("--plot needs at least two wavelengths")
@@ -362,7 +350,7 @@ def render(
         if abs(ink_mm - maps.mm_per_pixel) > 1e-6 * maps.mm_per_pixel:
             raise InputError(f"{tattoo}: mm_per_pixel {ink_mm:g} differs from the maps' {maps.mm_per_pixel:g}")
         maps = add_absorbance(maps, ink, ink_wl)
-    _check_physics(physics, photons)
+    check_physics_options(physics, photons)
     base = out.with_suffix("") if out.suffix.lower() in (".exr", ".png") else out
     names = [base.with_suffix(".exr").name] + ([base.with_suffix(".png").name] if wl.numel() >= 2 else [])
     with claim_outputs(base.parent, names, force=force, lock_name=f".{base.name}.lock", what="rendering") as staging:

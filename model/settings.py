@@ -21,6 +21,10 @@ from ..formats.settings import Strict, load_settings
 __all__ = ["ModelSettings", "RenderSettings", "SettingsError", "SkinOptics", "TableSettings", "TransportSettings", "load_model_settings"]
 
 PAPER_RENDER_WAVELENGTHS_NM = [400.0 + 35.0 * i for i in range(8)]
+#: The light transport a render can use: the diffusion model, or the Monte Carlo reference (model/transport).
+PHYSICS = ("diffusion", "transport")
+#: Photons per wavelength a Monte Carlo render may take.
+MIN_PHOTONS, MAX_PHOTONS = 1000, 10**10
 
 
 class SkinOptics(Strict):
@@ -172,7 +176,7 @@ class TransportSettings(Strict):
             "model); skin's g ≈ 0.8 is the realistic one (σs = σs′ / (1 − g))."
         ),
     )
-    photons: int = Field(1_000_000, ge=1000, le=10**10, description="Photons per wavelength.")
+    photons: int = Field(1_000_000, ge=MIN_PHOTONS, le=MAX_PHOTONS, description="Photons per wavelength.")
     batch_photons: int = Field(1 << 18, ge=256, le=1 << 24, description="Photons walked at once (memory: about 1.1 kB each).")
     batches_min: int = Field(16, ge=4, le=1000, description="Batches at least (the standard error is the batches' spread).")
     roulette_weight: float = Field(1e-4, gt=0, lt=1, description="Below this weight a photon survives Russian roulette 1 in 10.")

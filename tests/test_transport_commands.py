@@ -121,3 +121,10 @@ def test_a_transport_session_goes_through_calibration_and_the_fit(tmp_path, run_
     assert truth["physics"] == "transport" and len(truth["seconds_per_band"]) == 9
     noise = max(truth["std_error_median_per_band"].values())
     assert fit["residual"]["pixel_rms_median"] < RESIDUAL_OVER_NOISE * noise, (fit["residual"], noise)
+
+
+def test_the_demo_refuses_photons_without_transport_before_making_a_folder(tmp_path, run_cli):
+    code, _, err = run_cli("demo", "--photons", "5000", "--out", str(tmp_path / "d"))
+    assert code == 1 and "--photons goes with --physics transport" in err and not (tmp_path / "d").exists()
+    code, _, err = run_cli("demo", "--physics", "mc", "--out", str(tmp_path / "d"))
+    assert code == 1 and "--physics 'mc'" in err and not (tmp_path / "d").exists()

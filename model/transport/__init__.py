@@ -10,7 +10,8 @@ It shares no code with the diffusion profiles. Validation: ``tests/model/test_tr
 (homogeneous slabs and two layers against adding-doubling) and docs/transport.md.
 """
 
-from .reference import BYTES_PER_PHOTON, TransportRenderer, TransportResult, TransportTotals
+from .reference import BYTES_PER_PHOTON, TransportRenderer, TransportResult, TransportTotals, check_physics_options
 from .walk import Medium, Tally, walk
 
-__all__ = ["BYTES_PER_PHOTON", "Medium", "Tally", "TransportRenderer", "TransportResult", "TransportTotals", "walk"]
+__all__ = ["BYTES_PER_PHOTON", "Medium", "Tally", "TransportRenderer", "TransportResult", "TransportTotals", "check_physics_options",
+           "walk"]

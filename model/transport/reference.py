@@ -32,12 +32,13 @@ from ..illumination import Light
 from ..maps import SkinMaps
 from ..params import SkinParams, layer_absorption
 from ..radiometry import entry_transmittance, exit_factor
-from ..settings import ModelSettings
+from ...formats.errors import InputError
+from ..settings import MAX_PHOTONS, MIN_PHOTONS, PHYSICS, ModelSettings
 from ..specular import torrance_sparrow_factor
 from ..spectra import chromophore_spectra
 from .walk import Medium, walk
 
-__all__ = ["BYTES_PER_PHOTON", "TransportRenderer", "TransportResult", "TransportTotals", "Y_INVARIANT_LIGHTS"]
+__all__ = ["BYTES_PER_PHOTON", "TransportRenderer", "TransportResult", "TransportTotals", "Y_INVARIANT_LIGHTS", "check_physics_options"]
 
 #: Peak memory per photon of a batch in flight (its state and the step's temporaries): 10⁷ photons in
 #: batches of 2¹⁸ peaked 282 MB over what the process held before (docs/transport.md).
@@ -207,6 +208,16 @@ class TransportRenderer:
             lost[first:first + len(group)] = tally.lost / (per_batch * entering)
         mean, se = surface.mean(0), surface.std(0, unbiased=True) / math.sqrt(batches)
         return mean, se, float(reflected.mean()), float(reflected.std(unbiased=True) / math.sqrt(batches)), float(lost.max())
+
+
+def check_physics_options(physics: str | None, photons: int | None) -> None:
+    """The one rule for a command's ``--physics`` and ``--photons`` (render, spectrum, capture, demo)."""
+    if physics is not None and physics not in PHYSICS:
+        raise InputError(f"--physics {physics!r}: expected {' or '.join(PHYSICS)}")
+    if photons is not None and physics != "transport":
+        raise InputError("--photons goes with --physics transport")
+    if photons is not None and not MIN_PHOTONS <= photons <= MAX_PHOTONS:
+        raise InputError(f"--photons {photons}: expected {MIN_PHOTONS:,}–{MAX_PHOTONS:,} per wavelength")
 
 
 def _stream(seed: int, wavelength_nm: float, item: int, batch: int) -> int:
