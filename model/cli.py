@@ -107,18 +107,13 @@ def _transport_spectrum_report(settings: ModelSettings, params: SkinParams, wave
 
     from .transport import TransportRenderer  # noqa: PLC0415
 
-    renderer = TransportRenderer(settings)
-    values, errors = [], []
     with Progress(transient=True) as bar:
         task = bar.add_task("transport (Monte Carlo)", total=wavelengths.numel())
-        for w in wavelengths:
-            totals = renderer.totals(params, w.reshape(1), photons=photons, seed=seed)
-            values.append(float(totals.reflectance[0]))
-            errors.append(float(totals.std_error[0]))
-            bar.advance(task)
-    refl = torch.tensor(values, dtype=torch.float64)
+        totals = TransportRenderer(settings).totals(params, wavelengths, photons=photons, seed=seed,
+                                                    progress=lambda done, total: bar.update(task, completed=done))
+    refl = totals.reflectance
     report = {
-        "wavelength_nm": [round(float(w), 6) for w in wavelengths], "reflectance": values, "std_error": errors,
+        "wavelength_nm": [round(float(w), 6) for w in wavelengths], "reflectance": refl.tolist(), "std_error": totals.std_error.tolist(),
         "params": {n: float(getattr(params, n)) for n in PARAMETER_NAMES}, "illuminant": illuminant,
         "physics": "transport", "photons": totals.photons, "anisotropy": settings.transport.anisotropy,
     }

@@ -134,15 +134,20 @@ class TransportRenderer:
             raise ValueError("a profile needs maps of one row and a light that does not vary along y (uniform, stripes)")
         return self.render(row, light, wavelength_nm, photons=photons, seed=seed, view_angle_deg=view_angle_deg)
 
-    def totals(self, params: SkinParams, wavelength_nm: torch.Tensor, *, photons: int | None = None, seed: int = 0) -> TransportTotals:
+    def totals(self, params: SkinParams, wavelength_nm: torch.Tensor, *, photons: int | None = None, seed: int = 0,
+               progress=None) -> TransportTotals:
         """Diffuse reflectance of homogeneous skin ``params`` (one set: 0-d tensors) at normal incidence:
-        every photon's light out of the surface, wherever it leaves (the plane is homogeneous)."""
+        every photon's light out of the surface, wherever it leaves (the plane is homogeneous).
+        ``progress(done, total)`` after each wavelength."""
         wl = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
         maps = SkinMaps(*(torch.as_tensor(v, dtype=torch.float64).reshape(1, 1, 1) for v in params.values()), mm_per_pixel=1.0)
         photons = int(photons or self.settings.transport.photons)
         point = torch.ones(1, 1, dtype=torch.float64)
-        values = [self._tally(self._medium(maps, 0, wl[j: j + 1]), point, photons, (seed, float(wl[j]), 0), 0.0)[2:4]
-                  for j in range(wl.numel())]
+        values = []
+        for j in range(wl.numel()):
+            values.append(self._tally(self._medium(maps, 0, wl[j: j + 1]), point, photons, (seed, float(wl[j]), 0), 0.0)[2:4])
+            if progress is not None:
+                progress(j + 1, wl.numel())
         return TransportTotals(torch.tensor([v[0] for v in values]), torch.tensor([v[1] for v in values]), photons)
 
     # -- pieces ----------------------------------------------------------------------------------

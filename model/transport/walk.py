@@ -171,7 +171,7 @@ def walk(
 
             # tentative collisions: real with probability σt(x, y) / σ̄; a real one scatters, the weight × albedo
             collide = ~hit
-            flat, _ = pixel(px, py)
+            flat, inside = pixel(px, py)  # the pixel under each photon, for its σa and, at the surface, its tally
             sa = sigma_a.reshape(n_layers, -1)[layer, flat]
             st = sa + sigma_s[layer]
             real = collide & (torch.rand(px.shape, dtype=f64, device=dev, generator=generator) * majorant[layer] < st)
@@ -188,7 +188,6 @@ def walk(
             if bool(top.any()):
                 r = fresnel_reflectance(-uz, medium.n_above / n[layer]).to(f64)
                 out = torch.where(top, wt * (1.0 - r), torch.zeros_like(wt))
-                inside = pixel(px, py)[1]
                 keep = top & scattered & inside
                 surface.index_add_(0, batch[keep] * (h * w) + flat[keep], out[keep])
                 add(0, top & scattered, out)
