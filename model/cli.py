@@ -373,8 +373,11 @@ def _render_diffusion(maps, light, wl: torch.Tensor, settings: ModelSettings, de
 
     renderer = SkinRenderer(settings)
     images, terms = [], []
-    for group in _band_groups(maps, light, wl, settings, device):
-        result = renderer.render(maps, light, wl[group], blur=blur, **angles)
+    groups = _band_groups(maps, light, wl, settings, device)
+    # every group takes the terms all bands at once would: grouping changes nothing in the image
+    series = renderer.series_terms_for(maps, wl) if len(groups) > 1 else None
+    for group in groups:
+        result = renderer.render(maps, light, wl[group], blur=blur, series_terms=series, **angles)
         images.append(result.image[0].detach().cpu().double())
         terms += result.terms
     return torch.cat(images), {}, f"{max(terms)} inter-scattering terms"

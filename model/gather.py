@@ -30,7 +30,7 @@ import torch
 
 from .blur import BlurPlan, blur_stack
 
-__all__ = ["Columns", "Lookup", "columns", "gather", "lookup", "total"]
+__all__ = ["ColumnLookups", "Columns", "Lookup", "columns", "gather", "lookup", "total"]
 
 
 @dataclass(frozen=True)
@@ -53,6 +53,46 @@ class Lookup:
 
     def cache_bytes(self, cols: "Columns") -> int:
         return cols.shape.shape[0] * self.index.numel() * self.frac.element_size()
+
+
+@dataclass(frozen=True)
+class ColumnLookups:
+    """One table position per pixel *and column*: ``index``/``frac`` ``(J, N, H, W)``, column 0 the
+    identity (the pixel's own σa), column j the σa the light of that Gaussian meets on its way (the
+    ``segment`` coupling: model/renderer.py). Totals differ per column, so each column's weight is
+    T(σ̄_j)·shape_j(σ̄_j). ``weights``: optionally those weights, dense ``(J, N, H, W)``, detached."""
+
+    index: torch.Tensor
+    frac: torch.Tensor
+    weights: torch.Tensor | None = None
+    slopes: torch.Tensor | None = None
+
+    def column(self, j: int) -> Lookup:
+        return Lookup(self.index[j], self.frac[j])
+
+    def cached(self, cols: "Columns") -> "ColumnLookups":
+        """With the dense weights — and, when the positions carry a gradient, the weights' derivatives
+        with respect to them, which the lean backward would otherwise recompute column by column."""
+        want_slopes = self.frac.requires_grad and torch.is_grad_enabled()
+        n_cols = cols.shape.shape[0]
+        with torch.no_grad():
+            plain = ColumnLookups(self.index, self.frac.detach())
+            # filled column by column (no stack: these are the render's largest tensors)
+            dense = torch.empty((n_cols, *self.frac.shape[1:]), dtype=self.frac.dtype, device=self.frac.device)
+            slopes = torch.empty_like(dense) if want_slopes else None
+            for j in range(n_cols):
+                at = plain.column(j)
+                t_j = torch.exp(_lerp(cols.log_total, at))
+                shape_j = _lerp(cols.shape[j], at)
+                torch.mul(t_j, shape_j, out=dense[j])
+                if slopes is not None:
+                    torch.mul(_slope(cols.log_total, at), shape_j, out=slopes[j])
+                    slopes[j].add_(_slope(cols.shape[j], at)).mul_(t_j)
+        return ColumnLookups(self.index, self.frac, dense, slopes)
+
+    def cache_bytes(self, cols: "Columns") -> int:
+        per = cols.shape.shape[0] * self.index[0].numel() * self.frac.element_size()
+        return per * (2 if self.frac.requires_grad and torch.is_grad_enabled() else 1)
 
 
 @dataclass(frozen=True)
@@ -101,49 +141,73 @@ def _slope(pairs: torch.Tensor, lk: Lookup) -> torch.Tensor:
     return pairs[:, 1].take(lk.index)
 
 
-def _weight(c: Columns, lk: Lookup, j: int) -> torch.Tensor:
-    """Shape weight of column ``j`` per pixel, from the cache when it holds it (no autograd)."""
-    return lk.weights[j] if lk.weights is not None else _lerp(c.shape[j], lk)
-
-
-def total(cols: Columns, lk: Lookup) -> torch.Tensor:
+def total(cols: Columns, lk: Lookup | ColumnLookups) -> torch.Tensor:
     """Σ_k w_k per pixel: the profile's plane integral at each pixel's σa."""
+    if isinstance(lk, ColumnLookups):
+        lk = lk.column(0)
     return torch.exp(_lerp(cols.log_total, lk))
 
 
-def _forward(f: torch.Tensor, sets: list[tuple[Columns, Lookup]], plan: BlurPlan) -> list[torch.Tensor]:
+def _column_weight(c: Columns, lk: ColumnLookups, j: int) -> torch.Tensor:
+    """Weight of column ``j`` per pixel, its own total included (``ColumnLookups``)."""
+    at = lk.column(j)
+    return torch.exp(_lerp(c.log_total, at)) * _lerp(c.shape[j], at)
+
+
+def _any_weight(c: Columns, lk, j: int, tracked: bool) -> torch.Tensor:
+    """Column ``j``'s weight: the shape alone for a ``Lookup`` (its total multiplies the sum), the whole
+    weight for ``ColumnLookups``; from the cache unless autograd must see it."""
+    if lk.weights is not None and not tracked:
+        return lk.weights[j]
+    return _column_weight(c, lk, j) if isinstance(lk, ColumnLookups) else _lerp(c.shape[j], lk)
+
+
+def _finish(c: Columns, lk, out: torch.Tensor) -> torch.Tensor:
+    return out if isinstance(lk, ColumnLookups) else total(c, lk) * out
+
+
+def _plain(lk):
+    """The lookup without its cache (autograd must see the weights' graph)."""
+    return type(lk)(lk.index, lk.frac)
+
+
+
+def _forward(f: torch.Tensor, sets: list, plan: BlurPlan) -> list[torch.Tensor]:
     tracked = torch.is_grad_enabled() and (f.requires_grad or any(lk.frac.requires_grad for _, lk in sets))
     if tracked:  # plain autograd: the weights must carry their graph
-        sets = [(c, Lookup(lk.index, lk.frac)) for c, lk in sets]
-    outs = [_weight(c, lk, 0) * f for c, lk in sets]
+        sets = [(c, _plain(lk)) for c, lk in sets]
+    outs = [_any_weight(c, lk, 0, tracked) * f for c, lk in sets]
     for j, blurred in enumerate(blur_stack(f, plan), start=1):
         for i, (c, lk) in enumerate(sets):
             if tracked:
-                outs[i] = outs[i] + _lerp(c.shape[j], lk) * blurred
+                outs[i] = outs[i] + _any_weight(c, lk, j, tracked) * blurred
             else:
-                outs[i].addcmul_(_weight(c, lk, j), blurred)
-    return [total(c, lk) * out for (c, lk), out in zip(sets, outs)]
+                outs[i].addcmul_(_any_weight(c, lk, j, tracked), blurred)
+    return [_finish(c, lk, out) for (c, lk), out in zip(sets, outs)]
 
 
 class _Gather(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, plan, cols, indices, caches, f, *fracs):  # noqa: D102
-        ctx.plan, ctx.cols, ctx.indices, ctx.caches = plan, cols, indices, caches
+    def forward(ctx, plan, cols, kinds, indices, caches, f, *fracs):  # noqa: D102
+        ctx.plan, ctx.cols, ctx.kinds, ctx.indices, ctx.caches = plan, cols, kinds, indices, caches
         ctx.save_for_backward(f, *fracs)
-        sets = [(c, Lookup(i, fr, w)) for c, i, w, fr in zip(cols, indices, caches, fracs)]
-        return tuple(_forward(f, sets, plan))
+        return tuple(_forward(f, _sets(cols, kinds, indices, caches, fracs), plan))
 
     @staticmethod
     def backward(ctx, *grads):  # noqa: D102
         f, *fracs = ctx.saved_tensors
-        sets = [(c, Lookup(i, fr, w)) for c, i, w, fr in zip(ctx.cols, ctx.indices, ctx.caches, fracs)]
-        need_f = ctx.needs_input_grad[4]
-        need_frac = ctx.needs_input_grad[5:]
+        sets = _sets(ctx.cols, ctx.kinds, ctx.indices, ctx.caches, fracs)
+        need_f = ctx.needs_input_grad[5]
+        need_frac = ctx.needs_input_grad[6:]
         grads = [g if g is not None else torch.zeros_like(f) for g in grads]
-        totals = [total(c, lk) for c, lk in sets]
-        scaled = [g * t for g, t in zip(grads, totals)]  # ∂L/∂(unnormalised sum)
-        frac_grads = [torch.zeros_like(fr) if need else None for fr, need in zip(fracs, need_frac)]
-        sums = [torch.zeros_like(f) for _ in sets]  # Σ_j shape_j B_j, for the totals' gradient
+        per_column = [isinstance(lk, ColumnLookups) for _, lk in sets]
+        totals = [None if pc else total(c, lk) for pc, (c, lk) in zip(per_column, sets)]
+        # ∂L/∂(the weighted sum before the total): the total's factor for a Lookup, nothing per column
+        scaled = [g if pc else g * t for g, t, pc in zip(grads, totals, per_column)]
+        # per column each column's gradient is written once (empty), a Lookup's accumulates (zeros)
+        frac_grads = [(torch.empty_like(fr) if pc else torch.zeros_like(fr)) if need else None
+                      for fr, need, pc in zip(fracs, need_frac, per_column)]
+        sums = [None if pc else torch.zeros_like(f) for pc in per_column]  # Σ_j shape_j B_j, for the totals' gradient
         grad_f = None
         with torch.enable_grad():
             f_leaf = f.detach().requires_grad_(need_f)
@@ -156,10 +220,20 @@ class _Gather(torch.autograd.Function):
                 h = None
                 for i, (c, lk) in enumerate(sets):
                     with torch.no_grad():
-                        w = _weight(c, lk, j)
-                        sums[i].addcmul_(w, b)
-                        if frac_grads[i] is not None:
-                            frac_grads[i].addcmul_(scaled[i] * _slope(c.shape[j], lk), b)
+                        w = _any_weight(c, lk, j, False)
+                        if per_column[i]:
+                            if frac_grads[i] is not None:
+                                if lk.slopes is not None:
+                                    dw = lk.slopes[j]
+                                else:
+                                    at = lk.column(j)
+                                    t_j = torch.exp(_lerp(c.log_total, at))
+                                    dw = t_j * (_slope(c.log_total, at) * _lerp(c.shape[j], at) + _slope(c.shape[j], at))
+                                torch.mul(scaled[i], dw, out=frac_grads[i][j]).mul_(b)
+                        else:
+                            sums[i].addcmul_(w, b)
+                            if frac_grads[i] is not None:
+                                frac_grads[i].addcmul_(scaled[i] * _slope(c.shape[j], lk), b)
                         term = w * scaled[i]
                     h = term if h is None else h + term
                 if need_f:
@@ -173,17 +247,25 @@ class _Gather(torch.autograd.Function):
             if need_f:
                 (grad_f,) = torch.autograd.grad(objective, f_leaf)
         for i, (c, lk) in enumerate(sets):
-            if frac_grads[i] is not None:
+            if frac_grads[i] is not None and not per_column[i]:
                 # T = exp(a + frac·s): ∂(T·sum)/∂frac = T·s·sum
                 frac_grads[i] += grads[i] * totals[i] * _slope(c.log_total, lk) * sums[i]
-        return (None, None, None, None, grad_f, *frac_grads)
+        return (None, None, None, None, None, grad_f, *frac_grads)
 
 
-def gather(f: torch.Tensor, sets: list[tuple[Columns, Lookup]], plan: BlurPlan, lean: bool = True) -> list[torch.Tensor]:
+def _sets(cols, kinds, indices, caches, fracs) -> list:
+    return [(c, kind(i, fr, *w)) for c, kind, i, w, fr in zip(cols, kinds, indices, caches, fracs)]
+
+
+def _cache_of(lk) -> tuple:
+    return (lk.weights, lk.slopes) if isinstance(lk, ColumnLookups) else (lk.weights,)
+
+
+def gather(f: torch.Tensor, sets: list, plan: BlurPlan, lean: bool = True) -> list[torch.Tensor]:
     """𝒢_P[f] for each (profile columns, pixel lookup) in ``sets``, sharing one blur stack of ``f``."""
     fracs = [lk.frac for _, lk in sets]
     needs_grad = torch.is_grad_enabled() and (f.requires_grad or any(fr.requires_grad for fr in fracs))
     if lean and needs_grad:
-        return list(_Gather.apply(plan, [c for c, _ in sets], [lk.index for _, lk in sets],
-                                  [lk.weights for _, lk in sets], f, *fracs))
+        return list(_Gather.apply(plan, [c for c, _ in sets], [type(lk) for _, lk in sets], [lk.index for _, lk in sets],
+                                  [_cache_of(lk) for _, lk in sets], f, *fracs))
     return _forward(f, sets, plan)

@@ -22,6 +22,7 @@ from typing import NamedTuple
 import torch
 
 from .gaussians import gaussian_sum_hankel
+from .layer_totals import collimated_transmission, layer_totals
 from .params import LayerAbsorption, SkinParams, layer_absorption
 from .profiles import multipole_hankel, multipole_totals
 from .radiometry import entry_transmittance
@@ -115,8 +116,9 @@ class SkinModel:
         eta_top, eta_mid, eta_derm = self._etas()
         s_epi = spectra.scattering_epidermis.to(ab.epidermis)
         s_derm = spectra.scattering_dermis.to(ab.epidermis)
+        transport = self.settings.profiles == "transport"
+        d = o.epidermis_thickness_mm
         if method == "exact":
-            d = o.epidermis_thickness_mm
             if k_per_mm is None:
                 epi = multipole_totals(ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
                 derm = multipole_totals(ab.dermis, s_derm, math.inf, eta_derm, 1.0)
@@ -124,7 +126,19 @@ class SkinModel:
                 k = torch.as_tensor(k_per_mm).to(ab.epidermis)
                 epi = multipole_hankel(k, ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
                 derm = multipole_hankel(k, ab.dermis, s_derm, math.inf, eta_derm, 1.0)
-            r2 = derm.R_plus
+            epi, r2 = list(epi), derm.R_plus
+            if transport:
+                # transport's totals, diffusion's shapes: each transform rescaled by its total's ratio
+                tt = layer_totals(ab.epidermis, s_epi, d, ab.dermis, s_derm, o.n_above, o.n_epidermis, o.n_dermis)
+                targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)
+                if k_per_mm is None:
+                    epi, r2 = list(targets), tt.R2_plus
+                else:
+                    diff_epi = multipole_totals(ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
+                    diff_r2 = multipole_totals(ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus
+                    epi = [e * (t / dt)[..., None] for e, t, dt in zip(epi, targets, diff_epi)]
+                    r2 = r2 * (tt.R2_plus / diff_r2)[..., None]
+                epi[1] = epi[1] + self._collimated(tt, k_per_mm)
         else:
             tab = self.tables(wavelength_nm).to(ab.epidermis.device, ab.epidermis.dtype)
             if k_per_mm is None:
@@ -137,9 +151,19 @@ class SkinModel:
 
             epi = [value("epidermis", p, ab.epidermis) for p in ("R_plus", "T_plus", "R_minus", "T_minus")]
             r2 = value("dermis", "R_plus", ab.dermis)
+            if transport:
+                epi[1] = epi[1] + self._collimated(collimated_transmission(ab.epidermis, s_epi, d, ab.dermis, s_derm),
+                                                   k_per_mm)
         if k_per_mm is not None:
             attenuation = attenuation[..., None]
         return LayerTransforms(epi[0], epi[1], epi[2], epi[3], r2, attenuation)
+
+    @staticmethod
+    def _collimated(tt, k_per_mm) -> torch.Tensor:
+        """The unscattered beam's share of T₁⁺ as the dermis's diffuse response sees it, q·T_c: a delta
+        in space, so the same at every frequency."""
+        value = tt.collimated_ratio * tt.T1_collimated
+        return value if k_per_mm is None else value[..., None]
 
     # -- results ------------------------------------------------------------------------------------
     def total_reflectance(

@@ -8,6 +8,9 @@ the gather operator 𝒢_P[f](x) = Σ_k w_k^P(x) (f ∗ G_k)(x) (profile of the 
     V_n = A·𝒢_{R2+}[U_n],   U_{n+1} = A·𝒢_{R1−}[V_n],
 
 with A = exp(-P) the thin interface layer (17.5% of the epidermal melanin plus any user absorbance).
+With ``profiles: transport`` the T₁⁺ table holds the epidermis's scattered transmittance only and
+U_0 = A·(𝒢_{T1+}[Φ] + q T_c Φ): the unscattered beam T_c = exp(-(σa + σs′) d) goes straight down, and
+q = R_c / R_d turns the dermis's Lambertian response into its collimated one (model/layer_totals.py).
 Φ is the irradiance that entered (F_t(θ_i) E); the series stops when the light left in it falls below
 ``series_tolerance``. All bands and batch items are blurred together; each gather's backward pass
 recomputes its blur stack instead of storing it (``gather.py``).
@@ -20,13 +23,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 from ..formats.resources import require_memory
-from .blur import BlurPlan
-from .gather import columns, gather, lookup, total
+from .blur import BlurPlan, blur_stack
+from .gather import ColumnLookups, columns, gather, lookup, total
 from .illumination import Light
+from .layer_totals import collimated_transmission
 from .layered import SkinModel
 from .maps import SkinMaps
 from .radiometry import entry_transmittance, exit_factor
@@ -121,7 +126,12 @@ class SkinRenderer:
         cols = {p: columns(tables, "epidermis", p, plan) for p in EPIDERMIS_PROFILES}
         cols["R2_plus"] = columns(tables, "dermis", "R_plus", plan)
         terms = series_terms or self._series_terms(cols, epi, derm, attenuation, b, wl.numel())
-        at = self._cached_lookups(cols, epi, derm, terms)
+        if rs.coupling == "segment":
+            at = self._cached_lookups(
+                cols, _column_lookups(tables.sigma_a_per_mm, sa_epi, plan, rs, rs.coupling_scale_epidermis),
+                _column_lookups(tables.sigma_a_per_mm, sa_derm, plan, rs, rs.coupling_scale), terms)
+        else:
+            at = self._cached_lookups(cols, epi, derm, terms)
 
         f_t = entry_transmittance(o.n_epidermis, o.n_above, math.cos(math.radians(light_angle_deg)))
         irradiance = light.irradiance(h, w, border, maps.mm_per_pixel, dtype, device)
@@ -131,6 +141,12 @@ class SkinRenderer:
             return gather(f, sets, plan, lean=rs.checkpoint)
 
         m, t1 = g(phi, [(cols["R_plus"], at["R_plus"]), (cols["T_plus"], at["T_plus"])])
+        if self.settings.profiles == "transport":
+            # the beam that crossed the epidermis unscattered reaches the dermis below its entry point
+            s_epi = spectra.scattering_epidermis.to(sa_epi).view(1, -1, 1, 1)
+            s_derm = spectra.scattering_dermis.to(sa_derm).view(1, -1, 1, 1)
+            beam = collimated_transmission(sa_epi, s_epi, o.epidermis_thickness_mm, sa_derm, s_derm)
+            t1 = t1 + (beam.collimated_ratio * beam.T1_collimated).reshape(t1.shape) * phi
         u = attenuation * t1
         for n in range(terms):
             (r2,) = g(u, [(cols["R2_plus"], at["R2_plus"])])
@@ -161,6 +177,21 @@ class SkinRenderer:
             image = image + (spec * rho * lit)[:, None]
         return RenderResult(exitance, image, wl, [terms] * wl.numel(), maps.mm_per_pixel)
 
+    def series_terms_for(self, maps: SkinMaps, wavelength_nm: torch.Tensor) -> int:
+        """The inter-scattering terms ``render`` takes for these maps and bands (worst pixel of all):
+        pass it as ``series_terms`` to render bands in groups exactly as at once."""
+        wl = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
+        with torch.no_grad():
+            params = maps.params()
+            flat = type(params)(*(v.detach().reshape(-1).double() for v in params.values()))
+            extra = None
+            if maps.absorbance is not None:
+                extra = _resample_bands(maps.absorbance.double(), maps.absorbance_wavelength_nm, wl)
+                extra = extra.permute(0, 2, 3, 1).reshape(-1, wl.numel())
+            t = self.model.layer_transforms(flat, wl, None, "tables", extra)
+            ratio = float((t.attenuation**2 * t.R1_minus * t.R2_plus).max().clamp(1e-12, 0.999))
+        return self._terms_for(ratio)
+
     # -- pieces ----------------------------------------------------------------------------------
     def _cached_lookups(self, cols, epi, derm, terms: int) -> dict:
         """Per profile, its lookup — with the dense weights computed once when the profile is gathered
@@ -168,9 +199,14 @@ class SkinRenderer:
         at = {"R_plus": epi, "T_plus": epi, "T_minus": epi, "R_minus": epi, "R2_plus": derm}
         budget = self.settings.render.weight_cache_mb * 2**20
         uses = {"R2_plus": terms, "T_minus": terms, "R_minus": terms - 1}
+        # per-column lookups cost a lerp of the total per column and pixel, and their backward twice
+        # that: worth caching for a profile gathered once, too
+        once = 0 if isinstance(epi, ColumnLookups) else 1
+        if once == 0:
+            uses.update(R_plus=1, T_plus=1)
         for name in sorted(uses, key=lambda k: -uses[k]):
             need = at[name].cache_bytes(cols[name])
-            if uses[name] > 1 and need <= budget:
+            if uses[name] > once and need <= budget:
                 at[name] = at[name].cached(cols[name])
                 budget -= need
         return at
@@ -182,8 +218,59 @@ class SkinRenderer:
             r1m = total(cols["R_minus"], epi)
             r2p = total(cols["R2_plus"], derm)
             ratio = float((attenuation**2 * r1m * r2p).max().clamp(1e-12, 0.999))
+        return self._terms_for(ratio)
+
+    def _terms_for(self, ratio: float) -> int:
+        rs = self.settings.render
         n = math.ceil(math.log(rs.series_tolerance * (1.0 - ratio)) / math.log(ratio))
         return int(min(max(n, 1), rs.max_series_terms))
+
+
+#: Points of the segment's parameter t at which its spread is sampled (the weights of the mixture).
+_SEGMENT_SAMPLES = 2000
+#: Mixture weights below this go to the pixel itself: the narrow bins near the exit hold a geometric
+#: tail (halving per Gaussian), and each bin kept is an image-sized sum per column.
+SEGMENT_MIN_WEIGHT = 0.02
+
+
+def segment_mixture(variances_px2: list[float], scale: float, bridge: float) -> list[list[float]]:
+    """For each column j (variance v_j of the plan's blurred Gaussians), the weights over
+    [identity, G(v_1), …, G(v_{J-1})] of ∫₀¹ G((t² + β t(1 − t)) c v_j) dt: where light that left at Δ ~ G(v_j)
+    from its entry was on its way — at tΔ from the exit along the straight segment, plus the wander of a
+    Brownian bridge pinned at both ends (β; c = ``scale``). Each sampled variance goes to the nearest
+    Gaussian in log variance; below half the narrowest, to the pixel itself."""
+    v = np.asarray(variances_px2, dtype=np.float64)
+    log_edges = np.log(np.concatenate([[v[0] / math.sqrt(2.0)], np.sqrt(v[:-1] * v[1:])]))
+    t = (np.arange(_SEGMENT_SAMPLES) + 0.5) / _SEGMENT_SAMPLES
+    out = []
+    for vj in v:
+        var = np.maximum((t * t + bridge * t * (1.0 - t)) * scale * vj, 1e-300)
+        bins = np.searchsorted(log_edges, np.log(var))  # 0: identity, k: G(v_k)
+        weights = np.bincount(bins, minlength=v.size + 1) / t.size
+        small = weights < SEGMENT_MIN_WEIGHT
+        small[0] = False
+        weights[0] += weights[small].sum()
+        weights[small] = 0.0
+        out.append(weights.tolist())
+    return out
+
+
+def _column_lookups(grid: torch.Tensor, sigma_a: torch.Tensor, plan: BlurPlan, rs, scale: float) -> ColumnLookups:
+    """Per column of ``plan``, the table position of the σa its light meets on its way: σa
+    (the power mean of exponent ``coupling_power``; 0: the geometric mean) averaged over where that light went (``segment_mixture``).
+    One blur stack of σa at the plan's own variances, mixed per column: cheap."""
+    n, (h, w) = sigma_a.shape[0] * sigma_a.shape[1], sigma_a.shape[-2:]
+    flat = sigma_a.reshape(n, h, w)
+    p = rs.coupling_power
+    value = torch.log(flat.clamp_min(1e-12)) if p == 0 else flat.clamp_min(1e-12) ** p
+    v = plan.blurred
+    smoothing = BlurPlan(tuple(v), (False,) * len(v), plan.strategy, "replicate", plan.pyramid_min_px)
+    stack = [value] + list(blur_stack(value, smoothing))
+    looks = [lookup(grid, sigma_a)]
+    for weights in segment_mixture(v, scale, rs.coupling_bridge):
+        mixed = sum(wt * stack[k] for k, wt in enumerate(weights) if wt > 0)
+        looks.append(lookup(grid, (torch.exp(mixed) if p == 0 else mixed ** (1.0 / p)).reshape(sigma_a.shape)))
+    return ColumnLookups(torch.stack([lk.index for lk in looks]), torch.stack([lk.frac for lk in looks]))
 
 
 def _replicate(x: torch.Tensor, border: int) -> torch.Tensor:

@@ -23,6 +23,9 @@ __all__ = ["ModelSettings", "RenderSettings", "SettingsError", "SkinOptics", "Ta
 PAPER_RENDER_WAVELENGTHS_NM = [400.0 + 35.0 * i for i in range(8)]
 #: The light transport a render can use: the diffusion model, or the Monte Carlo reference (model/transport).
 PHYSICS = ("diffusion", "transport")
+#: The layer responses the model combines: radiative transport's (adding-doubling totals by similarity,
+#: model/layer_totals.py) or the paper's diffusion (dipole and multipole, DWRR08 §3).
+PROFILES = ("transport", "diffusion")
 #: Photons per wavelength a Monte Carlo render may take.
 MIN_PHOTONS, MAX_PHOTONS = 1000, 10**10
 
@@ -153,6 +156,31 @@ class RenderSettings(Strict):
     checkpoint: bool = Field(
         True, description="Recompute blur stacks in the backward pass instead of storing them (memory for time)."
     )
+    coupling: Literal["exit", "segment"] = Field(
+        "exit",
+        description=(
+            "How neighbouring skin of different absorption couples: 'exit' (DWRR08 Eq. 9: each profile "
+            "chosen by the absorption at the exit pixel) or 'segment' (each Gaussian's weight chosen by "
+            "the absorption averaged over where its light went between entry and exit: model/renderer.py; "
+            "both against the Monte Carlo in docs/transport.md)."
+        ),
+    )
+    coupling_scale: float = Field(
+        1.0, gt=0, le=16,
+        description="'segment', the dermis's profile: the segment's variance as a multiple of each Gaussian's (1: its own).",
+    )
+    coupling_scale_epidermis: float = Field(
+        2.0, gt=0, le=16,
+        description="'segment', the epidermis's profiles: the same multiple.",
+    )
+    coupling_bridge: float = Field(
+        0.5, ge=0, le=8,
+        description="'segment': the wander of the path about the straight segment (a Brownian bridge's t(1 - t), times this).",
+    )
+    coupling_power: float = Field(
+        0.35, ge=0, le=1,
+        description="'segment': σa averaged as a power mean of this exponent (0: geometric, 1: arithmetic).",
+    )
     surface_roughness: float = Field(0.35, gt=0, description="Beckmann roughness of the Torrance–Sparrow surface term.")
     border_mm: float = Field(
         5.0,
@@ -194,6 +222,16 @@ class ModelSettings(Strict):
     tables: TableSettings = TableSettings()
     render: RenderSettings = RenderSettings()
     transport: TransportSettings = TransportSettings()
+    profiles: Literal["transport", "diffusion"] = Field(
+        "diffusion",
+        description=(
+            "The layer responses the model combines: 'transport' (each profile's plane integral from "
+            "adding-doubling, tabulated by similarity; shapes from diffusion; the unscattered beam through "
+            "the epidermis kept collimated: model/layer_totals.py) or 'diffusion' (DWRR08's dipole and "
+            "multipole, the default until the fit on transport sessions and real skin is measured with both). "
+            "Both against the Monte Carlo: docs/transport.md, \"A forward model that matches transport\"."
+        ),
+    )
     render_wavelengths_nm: list[float] = Field(
         default_factory=lambda: list(PAPER_RENDER_WAVELENGTHS_NM),
         description="Wavelengths rendered for colour images (DWRR08 §7: 400, 435, …, 645 nm).",

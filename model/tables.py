@@ -25,6 +25,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from . import layer_totals
 from .gaussians import fit_gaussian_weights, plane_quadrature
 from .profiles import dipole_profile, dipole_total, multipole_profiles, multipole_totals
 from .settings import ModelSettings
@@ -41,7 +42,7 @@ __all__ = [
     "table_key",
 ]
 
-TABLE_FORMAT_VERSION = 2  # 2: extrapolation distances in float64
+TABLE_FORMAT_VERSION = 3  # 2: extrapolation distances in float64; 3: profiles (transport | diffusion)
 EPIDERMIS_PROFILES = ("R_plus", "T_plus", "R_minus", "T_minus")
 DERMIS_PROFILES = ("R_plus",)
 
@@ -74,8 +75,11 @@ def table_key(settings: ModelSettings, wavelength_nm: torch.Tensor) -> dict:
             "source_depth",
         )
     }
+    if settings.profiles == "transport":
+        shaping["transport_tables"] = layer_totals.tables_digest()
     return {
         "version": TABLE_FORMAT_VERSION,
+        "profiles": settings.profiles,
         "optics": shaping,
         "tables": settings.tables.model_dump(mode="json"),
         "wavelength_nm": [round(float(w), 6) for w in torch.as_tensor(wavelength_nm).reshape(-1)],
@@ -176,7 +180,12 @@ class ProfileTables:
 def build_profile_tables(
     wavelength_nm: torch.Tensor, settings: ModelSettings | None = None, progress: Progress | None = None
 ) -> ProfileTables:
-    """Fit the Gaussian weights of every profile at every tabulated σa and wavelength (float64)."""
+    """Fit the Gaussian weights of every profile at every tabulated σa and wavelength (float64).
+
+    With ``settings.profiles == "transport"`` each profile keeps diffusion's shape (the fit) and takes
+    transport's plane integral (``layer_totals``): the weights are rescaled to it. The epidermis's T⁺ is
+    then its *scattered* part only; the renderer adds the unscattered beam per pixel.
+    """
     settings = settings or ModelSettings()
     opt, tab = settings.optics, settings.tables
     spectra = chromophore_spectra(wavelength_nm, opt)
@@ -206,6 +215,13 @@ def build_profile_tables(
             dipole_total(sigma_a, s_derm, eta_derm).numpy(),
             variances, r, q,
         )
+        if settings.profiles == "transport":
+            tt = layer_totals.layer_totals(sigma_a, s_epi, opt.epidermis_thickness_mm, sigma_a, s_derm,
+                                           opt.n_above, opt.n_epidermis, opt.n_dermis)
+            targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)
+            for p, target in enumerate(targets):
+                epi[j, p] *= (target.numpy() / np.maximum(epi[j, p].sum(-1), 1e-300))[:, None]
+            derm[j, 0] *= (tt.R2_plus.numpy() / np.maximum(derm[j, 0].sum(-1), 1e-300))[:, None]
         if progress is not None:
             progress(j + 1, n_wl)
     return ProfileTables(

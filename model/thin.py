@@ -10,7 +10,8 @@ inter-scattering round trips per pair of layers:
 each crossing of an epidermis–dermis interface attenuated by that interface's A = e^{-P}. Here for a
 flat slab: the back maps are the lit side, the front maps the viewed side, aligned pixel for pixel;
 the dermis takes the front maps' dermal blood. Reflected and transmitted light blend by Eq. 10,
-L = ½(1 + n_s·n_l) R + ½(1 − n_s·n_l) T (``blend_thin``).
+L = ½(1 + n_s·n_l) R + ½(1 − n_s·n_l) T (``blend_thin``). The layers are the paper's diffusion
+profiles whatever ``profiles`` says: the transport tables cover the two-layer skin only.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import torch
 
 from .blur import BlurPlan
 from .illumination import Light
+from .layered import SkinModel
 from .maps import SkinMaps
 from .radiometry import entry_transmittance, exit_factor
 from .gather import columns, gather, lookup
@@ -58,6 +60,11 @@ def render_transmission(
     dtype, device = front.dtype, front.device
     border = light.border_px(front.mm_per_pixel, rs.border_mm)
     model = renderer.model
+    if settings.profiles != "diffusion":
+        # the transport tables hold the two-layer skin's layers (air above the epidermis, dermis below);
+        # this geometry's layers (a dermis slab between epidermes) exist in diffusion only
+        settings = settings.model_copy(update={"profiles": "diffusion"})
+        model = SkinModel(settings, model.cache_dir)
     spectra = model.spectra(wl)
 
     def absorption(maps: SkinMaps):

@@ -38,7 +38,7 @@ def main(cfg: dict) -> dict:
     device = cfg.get("device", "cpu")
     render = RenderSettings(**cfg.get("render", {}))
     tables = TableSettings(**cfg.get("tables", {}))
-    renderer = SkinRenderer(ModelSettings(render=render, tables=tables))
+    renderer = SkinRenderer(ModelSettings(render=render, tables=tables, profiles=cfg.get("profiles", "transport")))
     wl = torch.linspace(cfg.get("wl_lo", 420.0), cfg.get("wl_hi", 680.0), cfg["bands"], dtype=torch.float64)
     maps = example(cfg["size"], cfg["mm"], device)
     light = Light("window", size_mm=cfg["size"] * cfg["mm"], border_mm=cfg.get("border_mm", 10.0))

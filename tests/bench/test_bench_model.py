@@ -81,6 +81,35 @@ def test_fit_spectrum_nist():
     write_csv("fit_spectrum.csv", rows)
 
 
+def test_fit_spectrum_nist_profiles():
+    """NIST's 100 forearms (400–700 nm) fitted with each profile choice (issue 15): the RMS residual and
+    how many fits end with a parameter at a bound, with no scale, a free scale, and the specular
+    reflection included (NIST's sphere geometry with the gloss kept). ``nist_profiles.csv``."""
+    from skinlayers.model import PARAMETER_NAMES as NAMES
+
+    data = read_spectra_csv(NIST).select(400, 700)
+    rows = []
+    for profiles in ("diffusion", "transport"):
+        model = SkinModel(ModelSettings(profiles=profiles))
+        fit_spectra(data.reflectance[:2], data.wavelength_nm, model)  # warm-up and tables
+        for kw in ({}, {"free_scale": True}, {"specular_included": True}):
+            start = time.perf_counter()
+            f = fit_spectra(data.reflectance, data.wavelength_nm, model, **kw)
+            seconds = time.perf_counter() - start
+            row = {"profiles": profiles, "options": "+".join(kw) or "no scale", "seconds": round(seconds, 2),
+                   "median_rms_pct": round(100 * float(f.rms_residual.median()), 3),
+                   "worst_rms_pct": round(100 * float(f.rms_residual.max()), 3),
+                   "any_at_bound_pct": round(100 * sum(bool(b) for b in f.at_bound) / len(f.at_bound), 1)}
+            for name in NAMES:
+                row[f"{name}_at_bound_pct"] = round(100 * sum(name in b for b in f.at_bound) / len(f.at_bound), 1)
+            row["median_scale"] = round(float(f.scale.median()), 4)
+            for j, name in enumerate(NAMES):
+                row[f"{name}_median"] = float(f.params.as_tensor()[:, j].median())
+            rows.append(row)
+    write_csv("nist_profiles.csv", rows, "NIST forearms, 400-700 nm, both profile choices")
+    assert all(r["median_rms_pct"] > 0 for r in rows)
+
+
 def test_colour_error_versus_bands():
     """ΔE2000 of Table 2 skins against 151 samples (400–700 every 2 nm) for n render bands."""
     import matplotlib

@@ -13,6 +13,8 @@ Writes to ``bench_results/`` (or ``$SKINLAYERS_BENCH_DIR``):
 from __future__ import annotations
 
 import json
+import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -41,6 +43,43 @@ def run(cfg: dict, timeout: int = 3000) -> dict:
 
 #: The renderer as it stood before the speed work: no weight cache, no series closure, tolerance 1e-3.
 PLAIN = {"series_closure": False, "weight_cache_mb": 0, "series_tolerance": 1e-3}
+
+
+#: The forward models side by side (issue 15): DWRR08's, transport profiles with its rule, the default.
+FORWARD_MODELS = {
+    "paper (diffusion, exit rule)": {"profiles": "diffusion", "render": {"coupling": "exit"}},
+    "transport profiles, exit rule": {"profiles": "transport", "render": {"coupling": "exit"}},
+    "transport profiles, segment coupling": {"profiles": "transport", "render": {"coupling": "segment"}},
+}
+
+
+def test_forward_models_speed_and_memory():
+    """Forward and forward + backward time and peak memory of the three forward models, each run in a
+    fresh process, interleaved, three rounds at 128² and one at the paper's case (256², 10-mm border);
+    the medians and the ratios to DWRR08's model in one run (``forward_models.csv``)."""
+    cases = {"128 px, 0.05 mm, 5-mm border": {"size": 128, "mm": 0.05, "bands": 9, "border_mm": 5.0},
+             "paper case, 256 px, 10-mm border": PAPER}
+    only = os.environ.get("SKINLAYERS_FORWARD_CASES")  # e.g. "128" for the small case alone
+    if only:
+        cases = {k: v for k, v in cases.items() if str(v["size"]) in only.split(",")}
+    rows = []
+    for case, base in cases.items():
+        rounds = 3 if base["size"] <= 128 else 1
+        got = {name: [] for name in FORWARD_MODELS}
+        for _ in range(rounds):
+            for name, over in FORWARD_MODELS.items():
+                got[name].append(run({**base, "backward": True, "profiles": over["profiles"], "render": over["render"]}))
+        paper = FORWARD_MODELS and got["paper (diffusion, exit rule)"]
+        med = lambda runs, key: statistics.median(r[key] for r in runs)  # noqa: E731
+        for name, runs in got.items():
+            fw, bw = med(runs, "forward_s"), med(runs, "backward_s")
+            p_fw, p_bw = med(paper, "forward_s"), med(paper, "backward_s")
+            rows.append({"case": case, "model": name, "rounds": rounds, "forward_s": round(fw, 2),
+                         "forward_backward_s": round(fw + bw, 2), "forward_vs_paper": round(fw / p_fw, 2),
+                         "forward_backward_vs_paper": round((fw + bw) / (p_fw + p_bw), 2),
+                         "peak_rss_mb": round(max(r["peak_rss_mb"] for r in runs)), "terms": runs[0]["terms"]})
+    write_csv("forward_models.csv", rows, "medians; ratios against DWRR08's model measured in the same run")
+    assert all(r["forward_s"] > 0 for r in rows)
 
 
 def test_paper_case_speed_and_memory():

@@ -30,7 +30,9 @@ def table2_params(dtype=torch.float64) -> SkinParams:
 
 @pytest.fixture(scope="module")
 def model(tmp_path_factory) -> SkinModel:
-    return SkinModel(cache_dir=str(tmp_path_factory.mktemp("tables")))
+    """The paper's diffusion model: these tests check its profiles and their combination (the transport
+    profiles' checks: test_transport_profiles.py)."""
+    return SkinModel(ModelSettings(profiles="diffusion"), cache_dir=str(tmp_path_factory.mktemp("tables")))
 
 
 def test_combination_equals_explicit_series():

@@ -21,7 +21,9 @@ WL = torch.tensor([450.0, 550.0, 650.0], dtype=F64)
 
 @pytest.fixture(scope="module")
 def renderer(tmp_path_factory) -> SkinRenderer:
-    return SkinRenderer(cache_dir=str(tmp_path_factory.mktemp("tables")))
+    """The paper's diffusion profiles: these checks are of the renderer's numerics, designed on them (the
+    transport profiles' renderer checks: test_transport_profiles.py)."""
+    return SkinRenderer(ModelSettings(profiles="diffusion"), cache_dir=str(tmp_path_factory.mktemp("tables")))
 
 
 def fourier_reference(renderer: SkinRenderer, row: dict, irradiance: torch.Tensor, mm: float, method: str) -> torch.Tensor:
@@ -48,7 +50,7 @@ def fourier_reference(renderer: SkinRenderer, row: dict, irradiance: torch.Tenso
 def test_uniform_light_reproduces_the_homogeneous_model(renderer, row):
     maps = SkinMaps.uniform(TABLE2[row], (24, 24), 0.05)
     result = renderer.render(maps, Light("uniform"), WL)
-    expected = SkinModel().diffuse_reflectance(SkinParams.from_mapping(TABLE2[row]), WL)
+    expected = SkinModel(renderer.settings).diffuse_reflectance(SkinParams.from_mapping(TABLE2[row]), WL)
     rel = (result.exitance[0].double() / expected[:, None, None] - 1).abs()
     assert float(rel.max()) < 0.005
 
@@ -138,7 +140,7 @@ def test_opaque_interface_leaves_only_the_epidermis(renderer):
     maps = SkinMaps.uniform(row, (16, 16), 0.05)
     opaque = maps.replace(absorbance=torch.full((1, 1, 16, 16), 200.0), absorbance_wavelength_nm=torch.tensor([500.0]))
     result = renderer.render(opaque, Light("uniform"), WL)
-    model = SkinModel()
+    model = SkinModel(renderer.settings)
     params = SkinParams.from_mapping(row)
     epi_only = model.diffuse_reflectance(params, WL, extra_absorbance=torch.full((3,), 200.0, dtype=F64))
     assert float((result.exitance[0].double() / epi_only[:, None, None] - 1).abs().max()) < 0.005
@@ -204,7 +206,7 @@ def test_series_count_follows_the_tolerance(tmp_path):
     a = loose.render(maps, Light("uniform"), WL)
     b = tight.render(maps, Light("uniform"), WL)
     assert a.terms[0] < b.terms[0]
-    expected = SkinModel().diffuse_reflectance(SkinParams.from_mapping(TABLE2["I interior"]), WL)
+    expected = SkinModel(loose.settings).diffuse_reflectance(SkinParams.from_mapping(TABLE2["I interior"]), WL)
     err_a = float((a.exitance[0].double().mean((-1, -2)) / expected - 1).abs().max())
     err_b = float((b.exitance[0].double().mean((-1, -2)) / expected - 1).abs().max())
     assert err_b < err_a < 0.01
@@ -236,7 +238,7 @@ def test_series_closure(tmp_path):
     closed = SkinRenderer(ModelSettings(), str(tmp_path))
     row = TABLE2["I interior"]
     uniform = closed.render(SkinMaps.uniform(row, (8, 8), 0.1, dtype=F64), Light("uniform"), WL, series_terms=1).exitance
-    expected = SkinModel().diffuse_reflectance(SkinParams.from_mapping(row), WL)
+    expected = SkinModel(closed.settings).diffuse_reflectance(SkinParams.from_mapping(row), WL)
     assert float((uniform[0].mean((-1, -2)) / expected - 1).abs().max()) < 1e-3
     assert float((plain.render(SkinMaps.uniform(row, (8, 8), 0.1, dtype=F64), Light("uniform"), WL, series_terms=1)
                   .exitance[0].mean((-1, -2)) / expected - 1).abs().max()) > 0.05

@@ -58,6 +58,9 @@ from skinlayers.model import tables as tables_module
 from skinlayers.model.gaussians import plane_quadrature
 from skinlayers.model.tables import load_profile_tables
 
+#: The audit checks the Gaussian fits of the diffusion profiles; the transport tables are the same fits
+#: rescaled to transport's totals (their totals against model/layer_totals: test_transport_profiles.py).
+DIFFUSION = ModelSettings(profiles="diffusion")
 F64 = torch.float64
 K_GRID = torch.logspace(-4, 5, 6000, dtype=F64)
 K_CHECK = torch.logspace(-5, 6, 3000, dtype=F64)
@@ -259,11 +262,11 @@ def failures(rows: list[Row]) -> list[str]:
 @pytest.fixture(scope="module")
 def three_wavelength_tables(cache_dir):
     """Full default settings: accuracy is only meaningful on the tables the model really uses."""
-    return load_profile_tables(torch.tensor([400.0, 550.0, 700.0], dtype=F64), ModelSettings(), cache_dir)
+    return load_profile_tables(torch.tensor([400.0, 550.0, 700.0], dtype=F64), DIFFUSION, cache_dir)
 
 
 def test_fit_accuracy_over_skin_range_three_wavelengths(three_wavelength_tables):
-    rows = audit(three_wavelength_tables, ModelSettings())
+    rows = audit(three_wavelength_tables, DIFFUSION)
     print("\n" + report(rows, "Gaussian tables at 400, 550, 700 nm"))
     assert max(x.k_grid_shift for x in rows if x.kind == "node") < 1e-5, "k grid not converged"
     assert sum(x.kind == "node" for x in rows) > 500
@@ -274,7 +277,7 @@ def test_fit_accuracy_over_skin_range_three_wavelengths(three_wavelength_tables)
 @pytest.mark.slow
 def test_fit_accuracy_over_skin_range_every_wavelength(cache_dir):
     """Every wavelength 400–700 nm at 2 nm, every node in skin's σa range and every midpoint."""
-    settings = ModelSettings()
+    settings = DIFFUSION
     tables = load_profile_tables(torch.arange(400.0, 700.1, 2.0, dtype=F64), settings, cache_dir)
     rows = audit(tables, settings)
     print("\n" + report(rows, "Gaussian tables, 400–700 nm every 2 nm"))
@@ -287,7 +290,7 @@ def test_audit_can_fail(three_wavelength_tables):
     """The audit itself: weights of the neighbouring node (one σa step off) or a basis without its
     narrowest Gaussians must be caught, so a pass above means something."""
     tables = three_wavelength_tables
-    settings = ModelSettings()
+    settings = DIFFUSION
     shifted = tables_module.ProfileTables(tables.wavelength_nm, tables.sigma_a_per_mm, tables.variances_mm2,
                                           torch.roll(tables.epidermis, 6, dims=2), tables.dermis, tables.key)
     rows = audit(shifted, settings, midpoints=False)
@@ -365,10 +368,11 @@ def test_cache_writes_one_file_and_reloads(tmp_path, monkeypatch):
 @pytest.mark.parametrize("changed", [
     ModelSettings(tables=TableSettings(n_sigma_a=9, fit_r_samples=60)),
     ModelSettings(tables=SMALL.model_copy(update={"gaussian_std_min_mm": 0.004})),
-    ModelSettings(tables=SMALL, optics=SkinOptics(n_epidermis=1.41)),
+    ModelSettings(tables=SMALL, profiles="transport"),
+    ModelSettings(tables=SMALL, profiles="diffusion", optics=SkinOptics(n_epidermis=1.41)),
     ModelSettings(tables=SMALL, optics=SkinOptics(epidermis_thickness_mm=0.3)),
     ModelSettings(tables=SMALL, optics=SkinOptics(source_depth="capped")),
-], ids=["n_sigma_a", "gaussian_std", "n_epidermis", "thickness", "source_depth"])
+], ids=["n_sigma_a", "gaussian_std", "profiles", "n_epidermis", "thickness", "source_depth"])
 def test_cache_shaping_setting_makes_new_file(tmp_path, monkeypatch, changed):
     monkeypatch.setenv("SKINLAYERS_CACHE", str(tmp_path))
     base = load_profile_tables(ONE_WL, ModelSettings(tables=SMALL))

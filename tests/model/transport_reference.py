@@ -103,13 +103,18 @@ def adding_doubling_slab(layer: Layer, n: float = N_SKIN, quad_points: int = QUA
     return Totals(float(ur1) - r0, float(ut1) - t0, r0, t0)
 
 
-def adding_doubling_stack(layers: Sequence[Layer], n: float = N_SKIN, quad_points: int = QUAD_POINTS) -> Totals:
+def adding_doubling_stack(layers: Sequence[Layer], n: float = N_SKIN, quad_points: int = QUAD_POINTS,
+                          attenuation: Sequence[float] | None = None) -> Totals:
     """Layers (top first) of one index ``n`` in air, by adding-doubling on one quadrature.
 
     Each layer's matrices come from iadpython's doubling (``simple_single_layer_matrices``); they are
     added top-down with ``add_layers`` (keeping both directions, since the stack is asymmetric), then
     the air boundaries with ``add_slide_above`` and ``add_slide_below``, as ``Sample.rt_matrices``
     does for one layer.
+
+    ``attenuation``: per boundary between layers (len(layers) - 1 values), a transmittance A applied at
+    every crossing, whatever the angle (the model's and the Monte Carlo's interface absorber): the
+    stack below a boundary is seen through it as A²·R (down and back) and A·T.
     """
     from iadpython.combine import add_layers, add_slide_above, add_slide_below, simple_single_layer_matrices
     from iadpython.start import boundary_layer
@@ -119,13 +124,17 @@ def adding_doubling_stack(layers: Sequence[Layer], n: float = N_SKIN, quad_point
     sample = _sample(layers[0], n, quad_points)
     sample.update_quadrature()
     down_r = up_r = down_t = up_t = None
-    for layer in layers:
+    if attenuation is not None and len(attenuation) != len(layers) - 1:
+        raise ValueError("one attenuation per boundary between layers")
+    for index, layer in enumerate(layers):
         sample.a, sample.b, sample.b_thinnest = layer.albedo, layer.optical_thickness, None
         r, t = simple_single_layer_matrices(sample)  # a homogeneous layer: same both ways
         if down_r is None:
             down_r, up_r, down_t, up_t = r, r, t, t
         else:
-            down_r, up_r, down_t, up_t = add_layers(sample, down_r, up_r, down_t, up_t, r, r, t, t)
+            a = 1.0 if attenuation is None else float(attenuation[index - 1])
+            # the boundary's absorber folded into the layer below it, on its side facing the stack above
+            down_r, up_r, down_t, up_t = add_layers(sample, down_r, up_r, down_t, up_t, a * a * r, r, a * t, a * t)
     r01, r10, t01, t10 = boundary_layer(sample, top=True)
     r02, r20, t02, t20 = add_slide_above(sample, r01, r10, t01, t10, down_r, up_r, down_t, up_t)
     r23, r32, t23, t32 = boundary_layer(sample, top=False)

@@ -1,0 +1,404 @@
+"""Layer totals from radiative transport: the plane integrals of the five profiles the skin model combines,
+tabulated by similarity from adding-doubling (the ``transport`` choice of ``ModelSettings.profiles``).
+
+Diffusion's layer totals are off by up to +40% where absorption is not small against scattering and
+by up to +160% for the transmittance of a thin epidermis (docs/transport.md, "Diffusion against
+radiative transport"). Transport's totals of a homogeneous layer depend on the albedo and the
+optical thickness alone (lengths scale with 1/σt′), so one table over
+
+    x = log10(σa / σs′),    y = log10(σs′ d)   (the half-space: x alone)
+
+serves every wavelength, scattering law and thickness. The tables are computed once by
+adding-doubling (Prahl's ``iadpython``, isotropic scattering with σs = σs′, the similarity case the
+diffusion model rests on) and ship as package data; ``python -m skinlayers.model.layer_totals``
+regenerates them (about a minute; needs the ``test`` extra). Reading them needs nothing but numpy.
+
+What each table holds, per unit power *entering* the layer (the model's convention, DWRR08 §3):
+
+* the epidermis slab, index 1.40 under air, index-matched below: R⁺ (normal collimated light from
+  above), T⁺ *diffuse* (the light that scattered at least once, into the medium below), R⁻ and T⁻
+  (Lambertian light from below in the slab's index; T⁻ leaves into air). The unscattered part of T⁺,
+  ``T_c = exp(-(σa + σs′) d)``, is closed form and kept apart: it reaches the dermis as a collimated
+  beam straight below its entry point.
+* the half-space (dermis), index-matched above: R for collimated normal light (``R_c``) and for
+  Lambertian light (``R_d``).
+
+``combine`` then builds the five totals the renderer gathers with, with two steps diffusion does not
+need: (1) the dermis answers the collimated beam with ``R_c``, not ``R_d``, so T₁⁺ enters the
+combination as ``T_d + (R_c / R_d) T_c`` — with ``R₂⁺ = R_d`` the Eq. 7 series then reproduces
+``T_c R_c + T_d R_d`` exactly for homogeneous skin (against a stack by adding-doubling: within 0.6%
+over Table 2, against 2.2% treating all of T⁺ as Lambertian: docs/transport.md); (2) the small index
+step between the layers (1.40 over 1.38, total internal reflection beyond 80°) is added as a thin
+Fresnel interface with hemispherical reflectances from either side, by the scalar adding rule.
+
+Shapes: coefficients broadcast to ``(...)``; results ``(...)``. Lookups are Catmull-Rom cubic in
+(x, y), differentiable (C¹) with respect to σa and σs′.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import hashlib
+import math
+import time
+from importlib.resources import files
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from .fresnel import fresnel_reflectance
+
+__all__ = [
+    "HalfSpaceTotals",
+    "LayerTotals",
+    "SlabTotals",
+    "TABLE_N_ABOVE",
+    "TABLE_N_LAYER",
+    "table_notes",
+    "tables_digest",
+    "CollimatedPart",
+    "check_indices",
+    "collimated_transmission",
+    "combine",
+    "diffuse_interface_reflectance",
+    "half_space_totals",
+    "slab_totals",
+]
+
+#: The indices the tables are built for by default: the epidermis (1.40, DWRR08 §5.1) under air (the
+#: shipped files say theirs in an ``# indices:`` line, and the reader holds to it).
+TABLE_N_LAYER, TABLE_N_ABOVE = 1.40, 1.0
+#: Grid of x = log10(σa/σs′) and y = log10(σs′ d); outside x the end values hold (albedo → 1 or → 0).
+X_MIN, X_MAX, X_STEP = -4.0, 2.5, 0.05
+Y_MIN, Y_MAX, Y_STEP = -1.0, 1.0, 0.05
+#: Adding-doubling quadrature points (32 against 64 changes no total by more than 2·10⁻⁴ relative).
+QUAD_POINTS = 32
+#: Optical thickness that stands in for a half-space (the clearest tabulated medium, σa/σs′ = 10⁻⁴,
+#: has a diffusion length of 58 optical depths: e^{-2·10⁵/58} of its light reaches the far side).
+HALF_SPACE_OPTICAL_THICKNESS = 1e5
+#: Values are stored as logs; totals below this count as zero (a thick dark slab's T).
+_FLOOR = 1e-280
+
+SLAB_FILE, HALF_SPACE_FILE = "transport_slab_totals.csv", "transport_half_space_totals.csv"
+SLAB_COLUMNS = ("R_plus", "T_plus_diffuse", "R_minus", "T_minus")
+HALF_SPACE_COLUMNS = ("R_collimated", "R_diffuse")
+
+
+class SlabTotals(NamedTuple):
+    """Totals of the epidermis slab (see the module docstring), each ``(...)``."""
+
+    R_plus: torch.Tensor
+    T_plus_diffuse: torch.Tensor
+    T_plus_collimated: torch.Tensor
+    R_minus: torch.Tensor
+    T_minus: torch.Tensor
+
+
+class HalfSpaceTotals(NamedTuple):
+    R_collimated: torch.Tensor
+    R_diffuse: torch.Tensor
+
+
+class LayerTotals(NamedTuple):
+    """What the model's layer combination takes: R₁⁺, T₁⁺ (diffuse part), T_c, R₁⁻, T₁⁻, R₂⁺ and the
+    dermis's collimated-over-diffuse ratio ``q``; T₁⁺ as the combination sees it is ``T1_diffuse + q T_c``."""
+
+    R1_plus: torch.Tensor
+    T1_diffuse: torch.Tensor
+    T1_collimated: torch.Tensor
+    R1_minus: torch.Tensor
+    T1_minus: torch.Tensor
+    R2_plus: torch.Tensor
+    collimated_ratio: torch.Tensor
+
+    @property
+    def T1_plus(self) -> torch.Tensor:
+        return self.T1_diffuse + self.collimated_ratio * self.T1_collimated
+
+
+def _axis(lo: float, hi: float, step: float) -> np.ndarray:
+    return np.round(np.linspace(lo, hi, int(round((hi - lo) / step)) + 1), 10)
+
+
+X_GRID, Y_GRID = _axis(X_MIN, X_MAX, X_STEP), _axis(Y_MIN, Y_MAX, Y_STEP)
+
+
+# -- reading ------------------------------------------------------------------------------------
+
+
+def _read(name: str) -> tuple[np.ndarray, list[str], list[str]]:
+    """Rows (comments dropped), the header's names and the comment lines (source and units)."""
+    text = files("skinlayers.model").joinpath("data", name).read_text()
+    comments = [line for line in text.splitlines() if line.startswith("#")]
+    body = [line for line in text.splitlines() if line and not line.startswith("#")]
+    header = body[0].split(",")
+    return np.array([[float(v) for v in line.split(",")] for line in body[1:]]), header, comments
+
+
+@functools.lru_cache(maxsize=None)
+def _tables() -> dict:
+    """The shipped tables as float64 log-values: slab ``(4, X, Y)``, half-space ``(2, X)``."""
+    slab, header, slab_notes = _read(SLAB_FILE)
+    if header != ["x", "y", *SLAB_COLUMNS]:
+        raise ValueError(f"{SLAB_FILE}: unexpected columns {header}")
+    nx, ny = X_GRID.size, Y_GRID.size
+    if slab.shape[0] != nx * ny or not np.allclose(slab[:, 0].reshape(nx, ny)[:, 0], X_GRID) \
+            or not np.allclose(slab[:, 1].reshape(nx, ny)[0], Y_GRID):
+        raise ValueError(f"{SLAB_FILE}: the grid is not the one this module reads (x, y as in layer_totals)")
+    half, header, half_notes = _read(HALF_SPACE_FILE)
+    if header != ["x", *HALF_SPACE_COLUMNS] or not np.allclose(half[:, 0], X_GRID):
+        raise ValueError(f"{HALF_SPACE_FILE}: unexpected columns or grid")
+    indices = [line.split()[2:] for line in slab_notes if line.startswith("# indices:")]
+    if not indices:
+        raise ValueError(f"{SLAB_FILE}: no '# indices:' line")
+    words = indices[0]
+    log = lambda v: np.log(np.maximum(v, _FLOOR))  # noqa: E731
+    return {
+        "n_layer": float(words[words.index("n_layer") + 1]),
+        "n_above": float(words[words.index("n_above") + 1]),
+        "slab": torch.from_numpy(log(slab[:, 2:]).T.reshape(len(SLAB_COLUMNS), nx, ny).copy()),
+        "half": torch.from_numpy(log(half[:, 1:]).T.copy()),
+        "notes": tuple(slab_notes + half_notes),
+    }
+
+
+@functools.lru_cache(maxsize=None)
+def tables_digest() -> str:
+    """A short hash of both data files (part of the Gaussian tables' cache key)."""
+    data = files("skinlayers.model").joinpath("data")
+    text = "".join(data.joinpath(name).read_text() for name in (SLAB_FILE, HALF_SPACE_FILE))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def table_notes() -> tuple[str, ...]:
+    """The data files' header comments (their source, units and how they were made)."""
+    return _tables()["notes"]
+
+
+def _catmull_rom(t: torch.Tensor) -> torch.Tensor:
+    """Cubic convolution weights of the 4 neighbours (i-1, i, i+1, i+2) for a fraction t, ``(..., 4)``."""
+    t2, t3 = t * t, t * t * t
+    return torch.stack([
+        0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+        0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (t3 - t2),
+    ], dim=-1)
+
+
+def _position(value: torch.Tensor, lo: float, step: float, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Neighbour indices ``(..., 4)`` (clamped at the ends) and cubic weights for grid coordinates."""
+    u = ((value - lo) / step).clamp(0.0, n - 1.0)
+    i = u.detach().floor().clamp(0, n - 2).long()
+    idx = (i[..., None] + torch.arange(-1, 3, device=u.device)).clamp(0, n - 1)
+    return idx, _catmull_rom(u - i.to(u))
+
+
+def _x(sigma_a_per_mm: torch.Tensor, sigma_s_prime_per_mm: torch.Tensor) -> torch.Tensor:
+    if bool((sigma_a_per_mm < 0).any()) or bool((sigma_s_prime_per_mm <= 0).any()):
+        raise ValueError("sigma_a must be >= 0 and sigma_s_prime > 0 (mm^-1)")
+    return torch.log10(sigma_a_per_mm.clamp_min(1e-300) / sigma_s_prime_per_mm)
+
+
+def slab_totals(sigma_a_per_mm, sigma_s_prime_per_mm, thickness_mm: float) -> SlabTotals:
+    """Transport totals of the epidermis slab (index 1.40 under air, matched below), shapes ``(...)``."""
+    sa, ss = torch.broadcast_tensors(torch.as_tensor(sigma_a_per_mm), torch.as_tensor(sigma_s_prime_per_mm))
+    if not thickness_mm > 0:
+        raise ValueError(f"slab thickness must be > 0 mm, got {thickness_mm}")
+    y = torch.log10(ss * thickness_mm)
+    lo, hi = 10.0**Y_MIN, 10.0**Y_MAX
+    if bool((y < Y_MIN - 1e-9).any()) or bool((y > Y_MAX + 1e-9).any()):
+        raise ValueError(
+            f"transport layer totals are tabulated for σs′·d within {lo:g}–{hi:g} (got "
+            f"{float((ss * thickness_mm).min()):.3g}–{float((ss * thickness_mm).max()):.3g}); use profiles: diffusion"
+        )
+    table = _tables()["slab"].to(device=sa.device, dtype=sa.dtype)
+    ix, wx = _position(_x(sa, ss), X_MIN, X_STEP, X_GRID.size)
+    iy, wy = _position(y, Y_MIN, Y_STEP, Y_GRID.size)
+    flat = table.reshape(table.shape[0], -1)
+    index = (ix[..., :, None] * Y_GRID.size + iy[..., None, :]).reshape(-1)
+    batch = ix.shape[:-1]
+    values = flat.index_select(1, index).reshape(table.shape[0], *batch, 16)
+    weights = (wx[..., :, None] * wy[..., None, :]).reshape(*batch, 16)
+    logs = (values * weights).sum(-1)
+    r_plus, t_diffuse, r_minus, t_minus = torch.exp(logs).unbind(0)
+    t_collimated = torch.exp(-(sa + ss) * thickness_mm)
+    return SlabTotals(r_plus, t_diffuse, t_collimated, r_minus, t_minus)
+
+
+def half_space_totals(sigma_a_per_mm, sigma_s_prime_per_mm) -> HalfSpaceTotals:
+    """Transport totals of a half-space (index-matched above), shapes ``(...)``."""
+    sa, ss = torch.broadcast_tensors(torch.as_tensor(sigma_a_per_mm), torch.as_tensor(sigma_s_prime_per_mm))
+    table = _tables()["half"].to(device=sa.device, dtype=sa.dtype)
+    ix, wx = _position(_x(sa, ss), X_MIN, X_STEP, X_GRID.size)
+    values = table.index_select(1, ix.reshape(-1)).reshape(table.shape[0], *ix.shape)
+    r_c, r_d = torch.exp((values * wx).sum(-1)).unbind(0)
+    return HalfSpaceTotals(r_c, r_d)
+
+
+@functools.lru_cache(maxsize=64)
+def diffuse_interface_reflectance(n_from: float, n_to: float, points: int = 400) -> float:
+    """Hemispherical reflectance 2∫F(μ)μ dμ of Lambertian light in index ``n_from`` meeting ``n_to``
+    (Fresnel, unpolarised, total internal reflection included), by Gauss–Legendre quadrature."""
+    nodes, weights = np.polynomial.legendre.leggauss(points)
+    mu = 0.5 * (nodes + 1.0)
+    # fresnel_reflectance takes the cosine on the side the light comes from and the ratio beyond/here
+    f = fresnel_reflectance(torch.from_numpy(mu), n_to / n_from).numpy()
+    return float(np.sum(weights * 0.5 * 2.0 * f * mu))
+
+
+def check_indices(n_above: float, n_epidermis: float) -> None:
+    """Refuse indices the shipped tables were not computed for (they shape every total)."""
+    tab = _tables()
+    if abs(n_epidermis - tab["n_layer"]) > 1e-9 or abs(n_above - tab["n_above"]) > 1e-9:
+        raise ValueError(
+            f"transport profiles are tabulated for an epidermis of index {tab['n_layer']} under {tab['n_above']} "
+            f"(got {n_epidermis} under {n_above}); regenerate model/data/{SLAB_FILE} with "
+            "`python -m skinlayers.model.layer_totals --n-layer … --n-above …`, or use profiles: diffusion"
+        )
+
+
+def combine(slab: SlabTotals, half: HalfSpaceTotals, n_epidermis: float, n_dermis: float) -> LayerTotals:
+    """The model's five layer totals from the two tables, the index step between the layers added.
+
+    The step is a smooth boundary with hemispherical reflectances r_d (from the epidermis) and r_u
+    (from the dermis); by the scalar adding rule, with D = 1 / (1 - r_d R⁻):
+    R⁺ += T_d r_d T⁻ D,  T_d ← T_d (1 - r_d) D,  R⁻ ← r_u + (1 - r_u)(1 - r_d) R⁻ D,  T⁻ ← (1 - r_u) T⁻ D.
+    The collimated beam crosses it at normal incidence (reflectance 5·10⁻⁵ for 1.40/1.38, neglected).
+    """
+    r_d = diffuse_interface_reflectance(n_epidermis, n_dermis)
+    r_u = diffuse_interface_reflectance(n_dermis, n_epidermis)
+    d = 1.0 / (1.0 - r_d * slab.R_minus)
+    r_plus = slab.R_plus + slab.T_plus_diffuse * r_d * slab.T_minus * d
+    t_diffuse = slab.T_plus_diffuse * (1.0 - r_d) * d
+    r_minus = r_u + (1.0 - r_u) * (1.0 - r_d) * slab.R_minus * d
+    t_minus = (1.0 - r_u) * slab.T_minus * d
+    ratio = half.R_collimated / half.R_diffuse
+    return LayerTotals(r_plus, t_diffuse, slab.T_plus_collimated, r_minus, t_minus, half.R_diffuse, ratio)
+
+
+def layer_totals(sigma_a_epidermis, sigma_s_prime_epidermis, thickness_mm: float, sigma_a_dermis,
+                 sigma_s_prime_dermis, n_above: float, n_epidermis: float, n_dermis: float) -> LayerTotals:
+    """``combine`` of the slab and half-space tables at these coefficients (indices checked)."""
+    check_indices(n_above, n_epidermis)
+    return combine(slab_totals(sigma_a_epidermis, sigma_s_prime_epidermis, thickness_mm),
+                   half_space_totals(sigma_a_dermis, sigma_s_prime_dermis), n_epidermis, n_dermis)
+
+
+class CollimatedPart(NamedTuple):
+    T1_collimated: torch.Tensor
+    collimated_ratio: torch.Tensor
+
+
+def collimated_transmission(sigma_a_epidermis, sigma_s_prime_epidermis, thickness_mm: float, sigma_a_dermis,
+                            sigma_s_prime_dermis) -> CollimatedPart:
+    """The unscattered beam through the epidermis, T_c = exp(-(σa + σs′) d), and the dermis's
+    collimated-over-Lambertian reflectance ratio q at its σa: what the renderer adds per pixel to the
+    light its T₁⁺ gather sends down (``q T_c Φ``), without a profile: the beam goes straight down."""
+    t_c = torch.exp(-(torch.as_tensor(sigma_a_epidermis) + sigma_s_prime_epidermis) * thickness_mm)
+    half = half_space_totals(sigma_a_dermis, sigma_s_prime_dermis)
+    return CollimatedPart(t_c, half.R_collimated / half.R_diffuse)
+
+
+# -- building (adding-doubling) -------------------------------------------------------------------
+
+
+def _layer_matrices(albedo: float, optical_thickness: float, n_layer: float, n_above: float):
+    import iadpython
+    from iadpython.combine import simple_single_layer_matrices
+
+    sample = iadpython.Sample(a=albedo, b=optical_thickness, g=0.0, d=1.0, n=n_layer, n_above=n_above,
+                              n_below=n_above, quad_pts=QUAD_POINTS)
+    sample.update_quadrature()
+    sample.b_thinnest = None
+    r, t = simple_single_layer_matrices(sample)
+    return sample, r, t
+
+
+def adding_doubling_slab(albedo: float, optical_thickness: float, n_layer: float = TABLE_N_LAYER,
+                         n_above: float = TABLE_N_ABOVE) -> tuple[float, float, float, float]:
+    """(R⁺, T⁺ diffuse, R⁻, T⁻) per unit entering power of a slab under a smooth boundary, matched below.
+
+    iadpython's matrices R_ij carry the flux weights 2ν_i w_i of its quadrature: a Lambertian
+    incidence of unit flux inside the slab is the weight vector itself, light leaving into air exists
+    only above the critical cosine (the rows beyond it), the matched side takes every row.
+    """
+    from iadpython.combine import add_slide_above
+    from iadpython.start import boundary_layer
+
+    sample, r, t = _layer_matrices(albedo, optical_thickness, n_layer, n_above)
+    r01, r10, t01, t10 = boundary_layer(sample, top=True)
+    r02, r20, t02, t20 = add_slide_above(sample, r01, r10, t01, t10, r, r, t, t)
+    w = sample.twonuw
+    k = int(np.min(np.where(sample.nu > sample.nu_c())))
+    specular = ((n_layer - n_above) / (n_layer + n_above)) ** 2
+    entering = 1.0 - specular
+    r_plus = (float(w[k:] @ r02[k:, -1]) - specular) / entering
+    t_plus = float(w @ t02[:, -1]) / entering - math.exp(-optical_thickness)
+    r_minus = float(w @ r20 @ w)
+    t_minus = float(w[k:] @ t20[k:, :] @ w)
+    return r_plus, t_plus, r_minus, t_minus
+
+
+def adding_doubling_half_space(albedo: float, n_layer: float = TABLE_N_LAYER) -> tuple[float, float]:
+    """(R collimated, R Lambertian) of a half-space, index-matched above (no boundary)."""
+    sample, r, _ = _layer_matrices(albedo, HALF_SPACE_OPTICAL_THICKNESS, n_layer, TABLE_N_ABOVE)
+    w = sample.twonuw
+    return float(w @ r[:, -1]), float(w @ r @ w)
+
+
+def build(folder: Path, n_layer: float = TABLE_N_LAYER, n_above: float = TABLE_N_ABOVE) -> None:
+    """Compute both tables by adding-doubling and write them into ``folder`` (the package's data)."""
+    import iadpython
+
+    start = time.perf_counter()
+    ratio = 10.0**X_GRID
+    albedo = 1.0 / (1.0 + ratio)
+    source = (
+        f"# Computed by this project (skinlayers.model.layer_totals.build) with iadpython {iadpython.__version__} "
+        f"adding-doubling (S. Prahl), {QUAD_POINTS} quadrature points,\n"
+        "#   isotropic scattering (g = 0) with sigma_s = sigma_s' (the similarity case the diffusion model rests on).\n"
+        "# x = log10(sigma_a / sigma_s'); totals are dimensionless, per unit power entering the layer.\n"
+        "# Regenerate: python -m skinlayers.model.layer_totals (needs the test extra: iadpython).\n"
+    )
+    with (folder / SLAB_FILE).open("w") as f:
+        f.write(
+            f"# indices: n_layer {n_layer} n_above {n_above}\n"
+            f"# Transport totals of a slab of index {n_layer} under a medium of index {n_above}, index-matched below.\n"
+            "# y = log10(sigma_s' * thickness). R_plus: normal collimated light from above (specular excluded);\n"
+            "#   T_plus_diffuse: its scattered part into the medium below (the unscattered exp(-(sigma_a + sigma_s') d)\n"
+            "#   excluded); R_minus, T_minus: Lambertian light from below (T_minus leaves above).\n" + source
+        )
+        f.write("x,y," + ",".join(SLAB_COLUMNS) + "\n")
+        for i, x in enumerate(X_GRID):
+            for y in Y_GRID:
+                tau = (10.0**y) * (1.0 + ratio[i])
+                values = adding_doubling_slab(float(albedo[i]), float(tau), n_layer, n_above)
+                f.write(f"{x:.2f},{y:.2f}," + ",".join(f"{max(v, 0.0):.10e}" for v in values) + "\n")
+    with (folder / HALF_SPACE_FILE).open("w") as f:
+        f.write(
+            f"# Transport totals of a half-space of index {n_layer}, index-matched above (no boundary);\n"
+            f"#   a slab of optical thickness {HALF_SPACE_OPTICAL_THICKNESS:g} stands in for it.\n"
+            "# R_collimated: normal collimated light; R_diffuse: Lambertian light.\n" + source
+        )
+        f.write("x," + ",".join(HALF_SPACE_COLUMNS) + "\n")
+        for i, x in enumerate(X_GRID):
+            values = adding_doubling_half_space(float(albedo[i]), n_layer)
+            f.write(f"{x:.2f}," + ",".join(f"{v:.10e}" for v in values) + "\n")
+    _tables.cache_clear()
+    tables_digest.cache_clear()
+    print(f"wrote {folder / SLAB_FILE} and {folder / HALF_SPACE_FILE} in {time.perf_counter() - start:.0f} s")
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description="Regenerate the transport layer-total tables (adding-doubling).")
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "data")
+    parser.add_argument("--n-layer", type=float, default=TABLE_N_LAYER)
+    parser.add_argument("--n-above", type=float, default=TABLE_N_ABOVE)
+    args = parser.parse_args(argv)
+    build(args.out, args.n_layer, args.n_above)
+
+
+if __name__ == "__main__":
+    main()
