@@ -171,7 +171,6 @@ def _plain(lk):
     return type(lk)(lk.index, lk.frac)
 
 
-
 def _forward(f: torch.Tensor, sets: list, plan: BlurPlan) -> list[torch.Tensor]:
     tracked = torch.is_grad_enabled() and (f.requires_grad or any(lk.frac.requires_grad for _, lk in sets))
     if tracked:  # plain autograd: the weights must carry their graph

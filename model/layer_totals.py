@@ -61,6 +61,7 @@ __all__ = [
     "tables_digest",
     "CollimatedPart",
     "check_indices",
+    "check_optics",
     "collimated_transmission",
     "combine",
     "diffuse_interface_reflectance",
@@ -256,6 +257,23 @@ def check_indices(n_above: float, n_epidermis: float) -> None:
             f"transport profiles are tabulated for an epidermis of index {tab['n_layer']} under {tab['n_above']} "
             f"(got {n_epidermis} under {n_above}); regenerate model/data/{SLAB_FILE} with "
             "`python -m skinlayers.model.layer_totals --n-layer … --n-above …`, or use profiles: diffusion"
+        )
+
+
+def check_optics(optics) -> None:
+    """Refuse, when the settings are made, optics the tables cannot serve: other indices, or an
+    epidermis whose σs′·d (over every wavelength the model takes) leaves the tabulated range."""
+    from .spectra import MAX_WAVELENGTH_NM, MIN_WAVELENGTH_NM, epidermis_scattering  # noqa: PLC0415 (spectra imports settings)
+
+    check_indices(optics.n_above, optics.n_epidermis)
+    wavelength = torch.linspace(MIN_WAVELENGTH_NM, MAX_WAVELENGTH_NM, 43, dtype=torch.float64)
+    tau = epidermis_scattering(wavelength, optics) * optics.epidermis_thickness_mm
+    lo, hi = 10.0**Y_MIN, 10.0**Y_MAX
+    if float(tau.min()) < lo or float(tau.max()) > hi:
+        raise ValueError(
+            f"transport profiles are tabulated for an epidermis of σs′·d within {lo:g}–{hi:g}; these optics give "
+            f"{float(tau.min()):.3g}–{float(tau.max()):.3g} over {MIN_WAVELENGTH_NM:g}–{MAX_WAVELENGTH_NM:g} nm "
+            "(thickness or scattering); use profiles: diffusion"
         )
 
 

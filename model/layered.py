@@ -119,25 +119,28 @@ class SkinModel:
         transport = self.settings.profiles == "transport"
         d = o.epidermis_thickness_mm
         if method == "exact":
+            def totals():
+                """Diffusion's totals: the result, or the transport rescaling's denominator."""
+                return (multipole_totals(ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth),
+                        multipole_totals(ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus)
+
             if k_per_mm is None:
-                epi = multipole_totals(ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
-                derm = multipole_totals(ab.dermis, s_derm, math.inf, eta_derm, 1.0)
+                epi, r2 = (None, None) if transport else totals()
             else:
                 k = torch.as_tensor(k_per_mm).to(ab.epidermis)
                 epi = multipole_hankel(k, ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
-                derm = multipole_hankel(k, ab.dermis, s_derm, math.inf, eta_derm, 1.0)
-            epi, r2 = list(epi), derm.R_plus
+                r2 = multipole_hankel(k, ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus
             if transport:
                 # transport's totals, diffusion's shapes: each transform rescaled by its total's ratio
                 tt = layer_totals(ab.epidermis, s_epi, d, ab.dermis, s_derm, o.n_above, o.n_epidermis, o.n_dermis)
                 targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)
                 if k_per_mm is None:
-                    epi, r2 = list(targets), tt.R2_plus
+                    epi, r2 = targets, tt.R2_plus
                 else:
-                    diff_epi = multipole_totals(ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
-                    diff_r2 = multipole_totals(ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus
+                    diff_epi, diff_r2 = totals()
                     epi = [e * (t / dt)[..., None] for e, t, dt in zip(epi, targets, diff_epi)]
                     r2 = r2 * (tt.R2_plus / diff_r2)[..., None]
+                epi = list(epi)
                 epi[1] = epi[1] + self._collimated(tt, k_per_mm)
         else:
             tab = self.tables(wavelength_nm).to(ab.epidermis.device, ab.epidermis.dtype)

@@ -249,6 +249,14 @@ class ModelSettings(Strict):
             raise ValueError("wavelengths must lie within 380–800 nm")
         return value
 
+    @model_validator(mode="after")
+    def _profiles(self) -> "ModelSettings":
+        if self.profiles == "transport":
+            from .layer_totals import check_optics  # noqa: PLC0415
+
+            check_optics(self.optics)
+        return self
+
     def digest(self, *parts: object) -> str:
         """A short stable hash of these settings and any extra parts (used as a cache key)."""
         blob = json.dumps([self.model_dump(mode="json"), *parts], sort_keys=True, default=str)

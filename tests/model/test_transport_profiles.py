@@ -62,34 +62,19 @@ def test_epidermal_slab_within_two_percent_over_skin_absorption():
     epidermis's σs′ of 400, 550 and 700 nm, against adding-doubling through the tests' own reference
     (iadpython's single-layer doubling and slide, not the package's tables); diffusion is far off."""
     pytest.importorskip("iadpython")
-    from iadpython.combine import add_slide_above
-    from iadpython.start import boundary_layer
+    from skinlayers.model.profiles import multipole_totals
 
     settings = ModelSettings.model_validate({"optics": {"n_dermis": 1.40, "interface_melanin_fraction": 0.0}})
     spectra = SkinModel(settings).spectra(torch.tensor([400.0, 550.0, 700.0], dtype=F64))
     worst, diffusion_worst = 0.0, 0.0
     for ss in spectra.scattering_epidermis.tolist():
         for sa in np.geomspace(0.02, 80.0, 8):
-            layer = ref.Layer(float(sa), ss, 0.25)
-            sample = ref._sample(layer, ref.N_SKIN, 32)
-            sample.update_quadrature()
-            sample.b_thinnest = None
-            from iadpython.combine import simple_single_layer_matrices
-
-            r, t = simple_single_layer_matrices(sample)
-            r01, r10, t01, t10 = boundary_layer(sample, top=True)
-            r02, r20, t02, t20 = add_slide_above(sample, r01, r10, t01, t10, r, r, t, t)
-            w, k = sample.twonuw, int(np.min(np.where(sample.nu > sample.nu_c())))
-            entering = 1.0 - ((ref.N_SKIN - 1.0) / (ref.N_SKIN + 1.0)) ** 2
-            truth = np.array([(float(w[k:] @ r02[k:, -1]) - (1.0 - entering)) / entering,
-                              float(w @ t02[:, -1]) / entering, float(w @ r20 @ w), float(w[k:] @ t20[k:, :] @ w)])
+            truth = np.array(ref.adding_doubling_slab_matched_below(ref.Layer(float(sa), ss, 0.25)))
             tab = lt.slab_totals(_t(sa), _t(ss), 0.25)
             model = np.array([float(tab.R_plus), float(tab.T_plus_diffuse + tab.T_plus_collimated),
                               float(tab.R_minus), float(tab.T_minus)])
             keep = truth > 1e-3  # a transmittance below 10⁻³ of the light carries nothing the skin shows
             worst = max(worst, float(np.abs(model[keep] / truth[keep] - 1.0).max()))
-            from skinlayers.model.profiles import multipole_totals
-
             diff = multipole_totals(_t(sa), _t(ss), 0.25, ref.N_SKIN, 1.0)
             diffusion = np.array([float(diff.R_plus), float(diff.T_plus)])
             diffusion_worst = max(diffusion_worst, float(np.abs(diffusion / truth[:2] - 1.0)[keep[:2]].max()))
@@ -176,10 +161,18 @@ def test_renderer_under_uniform_light_equals_the_homogeneous_model():
         torch.testing.assert_close(result.exitance[0, :, 4, 4], expected, rtol=2e-3, atol=0)
 
 
-def test_other_indices_are_refused_with_the_way_out():
-    settings = ModelSettings.model_validate({"profiles": "transport", "optics": {"n_epidermis": 1.45}})
-    with pytest.raises(ValueError, match="profiles: diffusion"):
-        SkinModel(settings).diffuse_reflectance(SkinParams.from_mapping(TABLE2["I interior"]), WL_DENSE[:2])
+def test_other_indices_are_refused_with_the_way_out(tmp_path):
+    """Optics the tables cannot serve are refused when the settings are made (a settings file: with
+    the key named), not in the middle of a render."""
+    from skinlayers.model import SettingsError, load_model_settings
+
+    for optics, match in (({"n_epidermis": 1.45}, "index"), ({"epidermis_thickness_mm": 3.0}, "σs′·d")):
+        with pytest.raises(ValueError, match=match):
+            ModelSettings.model_validate({"profiles": "transport", "optics": optics})
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("profiles: transport\noptics:\n  n_epidermis: 1.45\n")
+    with pytest.raises(SettingsError, match="profiles: diffusion"):
+        load_model_settings(bad)
     diffusion = ModelSettings.model_validate({"profiles": "diffusion", "optics": {"n_epidermis": 1.45}})
     assert math.isfinite(float(SkinModel(diffusion).diffuse_reflectance(SkinParams.from_mapping(TABLE2["I interior"]), WL_DENSE[:2])[0]))
 

@@ -144,6 +144,28 @@ def adding_doubling_stack(layers: Sequence[Layer], n: float = N_SKIN, quad_point
     return Totals(float(ur1) - r0, float(ut1) - t0, r0, t0)
 
 
+def adding_doubling_slab_matched_below(layer: Layer, n: float = N_SKIN, quad_points: int = 32) -> tuple[float, ...]:
+    """One slab under air, index-matched below (no boundary there), per unit *entering* power:
+    (R⁺ diffuse, T⁺ all of it, R⁻, T⁻) — R⁺/T⁺ for normal light from air, R⁻/T⁻ for Lambertian light from
+    below in the slab. iadpython's matrices carry the flux weights 2ν_i w_i: a Lambertian incidence is the
+    weight vector, light leaving into air exists only beyond the critical cosine, the matched side takes
+    every row."""
+    from iadpython.combine import add_slide_above, simple_single_layer_matrices
+    from iadpython.start import boundary_layer
+
+    sample = _sample(layer, n, quad_points)
+    sample.update_quadrature()
+    sample.b_thinnest = None
+    r, t = simple_single_layer_matrices(sample)
+    r01, r10, t01, t10 = boundary_layer(sample, top=True)
+    r02, r20, t02, t20 = add_slide_above(sample, r01, r10, t01, t10, r, r, t, t)
+    w, k = sample.twonuw, int(np.min(np.where(sample.nu > sample.nu_c())))
+    specular = ((n - 1.0) / (n + 1.0)) ** 2
+    entering = 1.0 - specular
+    return ((float(w[k:] @ r02[k:, -1]) - specular) / entering, float(w @ t02[:, -1]) / entering,
+            float(w @ r20 @ w), float(w[k:] @ t20[k:, :] @ w))
+
+
 # -- Monte Carlo ----------------------------------------------------------------------------------
 
 
