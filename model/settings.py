@@ -213,6 +213,18 @@ class TransportSettings(Strict):
         description="Uniform and striped light: also lit, this far beyond the maps (replicated skin), for the light that comes back into them.",
     )
     max_depth_mm: float = Field(50.0, gt=0, le=1000, description="A photon deeper than this in a semi-infinite dermis is dropped.")
+    twin: bool = Field(
+        True,
+        description=(
+            "Render a scene as a homogeneous twin's exact image plus the difference the same photons measure "
+            "between the scene and the twin (a control variate: model/transport/walk.py). Unbiased either way; "
+            "far less noise on skin near its mean (docs/transport.md, \"A homogeneous twin\")."
+        ),
+    )
+    twin_kernel_share: float = Field(
+        0.125, gt=0, le=4,
+        description="twin: photons for the twin's exact image (its point response, pooled over the plane), as a share of the scene's.",
+    )
 
 
 class ModelSettings(Strict):

@@ -106,7 +106,7 @@ class TransportRenderer:
             for i in range(b):
                 medium = self._medium(maps, i, wl[j: j + 1])
                 mean, se, _, _, lost_j = self._tally(medium, irradiance, photons, (seed, float(wl[j]), i), light_angle_deg,
-                                                     across_y=along_y)
+                                                     across_y=along_y, twin=ts.twin and not along_y)
                 out[i, j], err[i, j] = mean, se
                 lost = max(lost, lost_j)
             seconds.append(time.perf_counter() - start)
@@ -176,12 +176,48 @@ class TransportRenderer:
         lit = light.irradiance(h, w, border, mm, torch.float64, device)
         return lit[border: border + 1] if along_y else lit
 
+    def _twin_kernel(self, medium: Medium, twin_optics, irradiance_shape: tuple[int, int], batches: int, per_batch: int,
+                     stream: tuple[int, float, int], cos_t: float, entering: float) -> torch.Tensor:
+        """The homogeneous twin's point response ``(batches, 2·(h + b) − 1, 2·(w + c) − 1)``: the weight
+        each pixel offset receives per photon entering uniformly over one pixel, offset 0 at the centre
+        (every offset a scene's pixel can be from a lit cell)."""
+        ts = self.settings.transport
+        h, w = medium.shape
+        hl, wl = irradiance_shape
+        kh, kw = 2 * (h + (hl - h) // 2) - 1, 2 * (w + (wl - w) // 2) - 1
+        layers = len(medium.thickness_mm)
+        dev = medium.sigma_a_per_mm.device
+        sa = torch.tensor(twin_optics[0], dtype=torch.float64, device=dev)[:, None, None].expand(layers, kh, kw)
+        tr = torch.tensor(twin_optics[1], dtype=torch.float64, device=dev)[:, None, None].expand(layers - 1, kh, kw)
+        flat = Medium(medium.thickness_mm, medium.n, medium.n_above, medium.n_below, medium.sigma_s_per_mm, medium.anisotropy,
+                      sa.contiguous(), tr.contiguous(), medium.mm_per_pixel)
+        kernel = torch.zeros(batches, kh, kw, dtype=torch.float64, device=dev)
+        per_walk = max(1, ts.batch_photons // per_batch)
+        m = medium.mm_per_pixel
+        for first in range(0, batches, per_walk):
+            group = range(first, min(first + per_walk, batches))
+            g = torch.Generator(device=dev).manual_seed(_stream(stream[0], stream[1], stream[2], first, "twin"))
+            count = per_batch * len(group)
+            jitter = torch.rand(2, count, dtype=torch.float64, device=dev, generator=g) - 0.5
+            label = torch.arange(len(group), device=dev).repeat_interleave(per_batch)
+            tally = walk(flat, jitter[0] * m, jitter[1] * m, torch.full((count,), cos_t, dtype=torch.float64, device=dev),
+                         torch.full((count,), entering, dtype=torch.float64, device=dev), g, label=label, labels=len(group),
+                         roulette_weight=ts.roulette_weight, max_depth_mm=ts.max_depth_mm)
+            kernel[first:first + len(group)] = tally.surface / per_batch
+        return kernel
+
     def _tally(self, medium: Medium, irradiance: torch.Tensor, photons: int, stream: tuple[int, float, int], light_angle_deg: float,
-               across_y: bool = False):
+               across_y: bool = False, twin: bool = False):
         """``stream``: (seed, wavelength, item), the photons' key (``_stream``). Over the batches: the mean
         exitance per unit irradiance ``(H, W)`` and its standard error, the
         total diffuse reflectance per unit incident power and its standard error, the lost share.
-        ``across_y``: ``irradiance`` is one row and the result is per unit length along y."""
+        ``across_y``: ``irradiance`` is one row and the result is per unit length along y.
+
+        ``twin``: the exitance as the homogeneous twin's (each layer's mean σa, the interface's mean
+        transmittance) plus the scene's difference from it, both from the same photons (``walk``'s
+        ``twin``); the twin's own image is exact in expectation — its point response (``_twin_kernel``,
+        pooled over the plane) convolved with the irradiance — and each batch pairs with a batch of it,
+        so the standard error covers both. The totals stay the scene's own."""
         ts, o = self.settings.transport, self.settings.optics
         batches = max(ts.batches_min, math.ceil(photons / ts.batch_photons))
         per_batch = math.ceil(photons / batches)
@@ -197,6 +233,11 @@ class TransportRenderer:
         reflected = torch.zeros(batches, dtype=torch.float64, device=irradiance.device)
         lost = torch.zeros_like(reflected)
         per_walk = max(1, ts.batch_photons // per_batch)  # batches walked together
+        twin_optics = None
+        if twin:
+            layers = len(medium.thickness_mm)
+            twin_optics = (tuple(medium.sigma_a_per_mm.reshape(layers, -1).mean(1).tolist()),
+                           tuple(medium.interface_transmittance.reshape(layers - 1, -1).mean(1).tolist()))
         for first in range(0, batches, per_walk):
             group = range(first, min(first + per_walk, batches))
             g = torch.Generator(device=irradiance.device).manual_seed(_stream(*stream, first))
@@ -207,12 +248,30 @@ class TransportRenderer:
             y = torch.zeros_like(x) if across_y else ((cells // wl).to(torch.float64) + jitter[1] - hl / 2.0) * m
             label = torch.arange(len(group), device=irradiance.device).repeat_interleave(per_batch)
             tally = walk(medium, x, y, torch.full_like(x, cos_t), torch.full_like(x, entering), g, label=label, labels=len(group),
-                         roulette_weight=ts.roulette_weight, max_depth_mm=ts.max_depth_mm, across_y=across_y)
-            surface[first:first + len(group)] = tally.surface * (power / per_batch) / (m * (1.0 if across_y else m))
+                         roulette_weight=ts.roulette_weight, max_depth_mm=ts.max_depth_mm, across_y=across_y, twin=twin_optics)
+            measured = tally.surface if twin_optics is None else tally.surface - tally.surface_twin
+            surface[first:first + len(group)] = measured * (power / per_batch) / (m * (1.0 if across_y else m))
             reflected[first:first + len(group)] = tally.reflected / per_batch
             lost[first:first + len(group)] = tally.lost / (per_batch * entering)
+        if twin_optics is not None:
+            kernel = self._twin_kernel(medium, twin_optics, irradiance.shape, batches, max(1, math.ceil(per_batch * ts.twin_kernel_share)),
+                                       stream, cos_t, entering)
+            surface = surface + _convolve_kernel(irradiance, kernel, medium.shape)
         mean, se = surface.mean(0), surface.std(0, unbiased=True) / math.sqrt(batches)
         return mean, se, float(reflected.mean()), float(reflected.std(unbiased=True) / math.sqrt(batches)), float(lost.max())
+
+
+def _convolve_kernel(irradiance: torch.Tensor, kernel: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """The exitance ``(K, h, w)`` on the medium's grid (centred in the irradiance's ``(hl, wl)``) of a
+    homogeneous medium whose point response is ``kernel`` ``(K, 2·(h + b) − 1, 2·(w + c) − 1)`` (offset 0 at
+    its centre; b, c the irradiance's border): Σ_cells E(cell) K(pixel − cell)."""
+    h, w = shape
+    hl, wl = irradiance.shape
+    b, c = (hl - h) // 2, (wl - w) // 2
+    padded = torch.nn.functional.pad(irradiance[None, None], (w - 1, w - 1, h - 1, h - 1))
+    weight = torch.flip(kernel, dims=(-2, -1))[:, None]
+    out = torch.nn.functional.conv2d(padded.expand(1, 1, -1, -1), weight)[0]
+    return out[:, : h, : w] if out.shape[-2:] != (h, w) else out
 
 
 def check_physics_options(physics: str | None, photons: int | None) -> None:
@@ -225,10 +284,10 @@ def check_physics_options(physics: str | None, photons: int | None) -> None:
         raise InputError(f"--photons {photons}: expected {MIN_PHOTONS:,}–{MAX_PHOTONS:,} per wavelength")
 
 
-def _stream(seed: int, wavelength_nm: float, item: int, batch: int) -> int:
-    """One generator seed per (seed, wavelength, item of the maps, batch): the batches are independent,
-    and a band's photons are the same whatever other bands are rendered with it."""
-    key = f"transport {int(seed)} {float(wavelength_nm):.6f} {int(item)} {int(batch)}".encode()
+def _stream(seed: int, wavelength_nm: float, item: int, batch: int, purpose: str = "") -> int:
+    """One generator seed per (seed, wavelength, item of the maps, batch[, purpose]): the batches are
+    independent, and a band's photons are the same whatever other bands are rendered with it."""
+    key = f"transport {int(seed)} {float(wavelength_nm):.6f} {int(item)} {int(batch)}{' ' + purpose if purpose else ''}".encode()
     return int.from_bytes(hashlib.sha256(key).digest()[:8], "little") >> 1
 
 

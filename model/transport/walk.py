@@ -22,6 +22,18 @@ direction (u_x, u_y, u_z), a weight, the layer it is in, and whether it has scat
   of its batch and every tally is kept per batch, so one walk serves many independent batches (their
   spread is the standard error) at the cost of one.
 
+**A homogeneous twin** (``twin``, for a control variate): the same photons walked at once through
+skin of one absorption everywhere (each layer's σa and the interface's transmittance given as
+numbers). Scattering does not depend on the chromophores (σs per layer only), so a path can be
+drawn independently of the absorption and every absorption weighted along it — the microscopic
+Beer–Lambert law of perturbation Monte Carlo. Free paths are then sampled at σs + μ̄ per layer,
+where μ̄ = 2·max |σa(x, y) − σa,twin| bounds the difference: both weights are attenuated exactly by
+exp(−σa,twin t) over every flight, an event is a scattering with probability σs/(σs + μ̄), and
+otherwise it multiplies the medium's weight alone by 1 − (σa(x, y) − σa,twin)/μ̄ (ratio tracking of
+the difference, unbiased; the factor stays within 0.5–1.5). Roulette treats both weights alike.
+The twin's surface tally is correlated with the medium's pixel by pixel, so the difference of the
+two has a fraction of either's variance where the skin is near the twin.
+
 Lateral position beyond the medium's grid takes the nearest edge pixel's properties (skin replicated
 to infinity). The walk shares nothing with the diffusion profiles; it uses only the Fresnel equations.
 
@@ -89,7 +101,8 @@ class Tally:
     surface per pixel of the medium's grid (scattered light only, in units of one photon's weight);
     ``reflected`` / ``transmitted`` ``(K,)``: out of the top / bottom (scattered only);
     ``unscattered_reflected``, ``unscattered_transmitted`` ``(K,)``; ``lost`` ``(K,)``: the weight of photons
-    still alive at the step cap; ``steps``: the iterations run."""
+    still alive at the step cap; ``steps``: the iterations run; ``surface_twin`` ``(K, H, W)``: the
+    homogeneous twin's surface tally from the same photons (``walk``'s ``twin``), else None."""
 
     surface: torch.Tensor
     reflected: torch.Tensor
@@ -98,12 +111,13 @@ class Tally:
     unscattered_transmitted: torch.Tensor
     lost: torch.Tensor
     steps: int
+    surface_twin: torch.Tensor | None = None
 
 
 def walk(
     medium: Medium, x: torch.Tensor, y: torch.Tensor, cos_in: torch.Tensor, weight: torch.Tensor, generator: torch.Generator,
     *, label: torch.Tensor | None = None, labels: int = 1, roulette_weight: float = 1e-4, max_depth_mm: float = 50.0,
-    across_y: bool = False, azimuth: torch.Tensor | None = None,
+    across_y: bool = False, azimuth: torch.Tensor | None = None, twin: tuple[tuple[float, ...], tuple[float, ...]] | None = None,
 ) -> Tally:
     """Walk photons that have just entered the top layer at (``x``, ``y``) with direction cosine
     ``cos_in`` (> 0, into the skin; in the x–z plane, or at ``azimuth`` (radians) from the x axis) and
@@ -111,7 +125,10 @@ def walk(
 
     ``across_y``: a medium of one row that does not vary along y, under light that does not either:
     every exit is tallied in its column whatever its y — the profile M(x) from photons launched on
-    one line, each photon counting where a 2-D tally would keep one in hundreds."""
+    one line, each photon counting where a 2-D tally would keep one in hundreds.
+
+    ``twin``: (σa per layer (per mm), transmittance per interface) of a homogeneous twin walked with the
+    same photons (the module docstring); its tally is ``Tally.surface_twin``."""
     dev, f64 = x.device, torch.float64
     h, w = medium.shape
     m = medium.mm_per_pixel
@@ -120,7 +137,16 @@ def walk(
     z_bot = torch.tensor([sum(medium.thickness_mm[: k + 1]) for k in range(n_layers)], dtype=f64, device=dev)
     sigma_s = torch.tensor(medium.sigma_s_per_mm, dtype=f64, device=dev)
     sigma_a = medium.sigma_a_per_mm.to(dev, f64)
-    majorant = sigma_s + sigma_a.reshape(n_layers, -1).amax(1)
+    if twin is None:
+        majorant = sigma_s + sigma_a.reshape(n_layers, -1).amax(1)
+    else:
+        twin_sigma_a = torch.tensor(twin[0], dtype=f64, device=dev)
+        twin_transmit = torch.tensor(twin[1] if n_layers > 1 else (1.0,), dtype=f64, device=dev)
+        if twin_sigma_a.numel() != n_layers or (n_layers > 1 and twin_transmit.numel() != n_layers - 1):
+            raise ValueError("twin needs one σa per layer and one transmittance per interface")
+        difference = sigma_a - twin_sigma_a[:, None, None]
+        bound = 2.0 * difference.reshape(n_layers, -1).abs().amax(1)  # μ̄: the factor 1 − Δ/μ̄ stays in [0.5, 1.5]
+        majorant = sigma_s + bound
     n = torch.tensor(medium.n, dtype=f64, device=dev)
     transmit = medium.interface_transmittance.to(dev, f64).reshape(n_layers - 1, h * w)
     finite_bottom = math.isfinite(medium.thickness_mm[-1])
@@ -135,10 +161,12 @@ def walk(
     else:
         ux, uy, uz = sin_in * torch.cos(azimuth.to(f64)), sin_in * torch.sin(azimuth.to(f64)), cos_in.to(f64)
     wt = weight.to(f64).clone()
+    wtw = wt.clone() if twin is not None else None  # the twin's weight
     layer = torch.zeros(p, dtype=torch.long, device=dev)
     scattered = torch.zeros(p, dtype=torch.bool, device=dev)
     batch = torch.zeros(p, dtype=torch.long, device=dev) if label is None else label.to(dev, torch.long)
     surface = torch.zeros(labels * h * w, dtype=f64, device=dev)
+    surface_twin = torch.zeros_like(surface) if twin is not None else None
     totals = torch.zeros(4 * labels, dtype=f64, device=dev)  # per label: reflected, transmitted, unscattered R, unscattered T
 
     def add(kind: int, where: torch.Tensor, amount: torch.Tensor) -> None:
@@ -173,9 +201,17 @@ def walk(
             collide = ~hit
             flat, inside = pixel(px, py)  # the pixel under each photon, for its σa and, at the surface, its tally
             sa = sigma_a.reshape(n_layers, -1)[layer, flat]
-            st = sa + sigma_s[layer]
-            real = collide & (torch.rand(px.shape, dtype=f64, device=dev, generator=generator) * majorant[layer] < st)
-            wt = torch.where(real, wt * sigma_s[layer] / st.clamp_min(1e-300), wt)
+            if twin is None:
+                st = sa + sigma_s[layer]
+                real = collide & (torch.rand(px.shape, dtype=f64, device=dev, generator=generator) * majorant[layer] < st)
+                wt = torch.where(real, wt * sigma_s[layer] / st.clamp_min(1e-300), wt)
+            else:  # a path independent of the absorption: scatter at σs; the difference from the twin by ratio tracking
+                attenuation = torch.exp(-twin_sigma_a[layer] * t)
+                wt, wtw = wt * attenuation, wtw * attenuation
+                real = collide & (torch.rand(px.shape, dtype=f64, device=dev, generator=generator) * majorant[layer] < sigma_s[layer])
+                ratio = collide & ~real
+                mu = bound[layer].clamp_min(1e-300)
+                wt = torch.where(ratio, wt * (1.0 - (sa - twin_sigma_a[layer]) / mu), wt)
             if bool(real.any()):
                 ux, uy, uz = _scatter(ux, uy, uz, real, g, generator)
                 scattered = scattered | real
@@ -193,6 +229,9 @@ def walk(
                 add(0, top & scattered, out)
                 add(2, top & ~scattered, out)
                 wt = torch.where(top, wt * r, wt)
+                if twin is not None:
+                    surface_twin.index_add_(0, batch[keep] * (h * w) + flat[keep], (wtw * (1.0 - r))[keep])
+                    wtw = torch.where(top, wtw * r, wtw)
                 uz = torch.where(top, -uz, uz)
             if bool(bottom.any()):
                 r = fresnel_reflectance(uz, medium.n_below / n[layer]).to(f64)
@@ -200,6 +239,8 @@ def walk(
                 add(1, bottom & scattered, out)
                 add(3, bottom & ~scattered, out)
                 wt = torch.where(bottom, wt * r, wt)
+                if twin is not None:
+                    wtw = torch.where(bottom, wtw * r, wtw)
                 uz = torch.where(bottom, -uz, uz)
             if bool(inner.any()):
                 other = torch.where(uz > 0, layer + 1, layer - 1).clamp(0, n_layers - 1)
@@ -216,23 +257,34 @@ def walk(
                 which = torch.minimum(layer, other)  # the interface crossed: between layer k and k + 1
                 a = transmit[which.clamp_max(max(n_layers - 2, 0)), flat] if n_layers > 1 else torch.ones_like(wt)
                 wt = torch.where(cross, wt * a, wt)
+                if twin is not None:
+                    wtw = torch.where(cross, wtw * twin_transmit[which.clamp_max(max(n_layers - 2, 0))], wtw)
                 layer = torch.where(cross, other, layer)
 
             # roulette, the depth cut, and the survivors
-            low = wt < roulette_weight
+            low = wt < roulette_weight if twin is None else torch.maximum(wt, wtw) < roulette_weight
             if bool(low.any()):
                 survive = torch.rand(px.shape, dtype=f64, device=dev, generator=generator) < _SURVIVE
                 wt = torch.where(low, torch.where(survive, wt / _SURVIVE, torch.zeros_like(wt)), wt)
-            wt = torch.where(pz <= max_depth_mm, wt, torch.zeros_like(wt))
+                if twin is not None:
+                    wtw = torch.where(low, torch.where(survive, wtw / _SURVIVE, torch.zeros_like(wtw)), wtw)
+            deep = pz > max_depth_mm
+            wt = torch.where(deep, torch.zeros_like(wt), wt)
             alive = wt > 0
+            if twin is not None:
+                wtw = torch.where(deep, torch.zeros_like(wtw), wtw)
+                alive = alive | (wtw > 0)
             if int(alive.sum()) * _COMPACT_WHEN_ALIVE < px.numel() * (_COMPACT_WHEN_ALIVE - 1) or not bool(alive.any()):
                 px, py, pz, ux, uy, uz, wt, layer, scattered, batch = (
                     v[alive] for v in (px, py, pz, ux, uy, uz, wt, layer, scattered, batch))
+                if twin is not None:
+                    wtw = wtw[alive]
     finally:
         torch.set_num_threads(threads)
     lost = torch.zeros(labels, dtype=f64, device=dev).index_add_(0, batch, wt)
     per = totals.reshape(labels, 4)
-    return Tally(surface.reshape(labels, h, w), per[:, 0], per[:, 1], per[:, 2], per[:, 3], lost, steps)
+    return Tally(surface.reshape(labels, h, w), per[:, 0], per[:, 1], per[:, 2], per[:, 3], lost, steps,
+                 None if twin is None else surface_twin.reshape(labels, h, w))
 
 
 def _scatter(ux, uy, uz, where, g: float, generator):
