@@ -80,7 +80,7 @@ def _apply(problem: LevelProblem, x: torch.Tensor, dx: torch.Tensor, z: torch.Te
     out = x.clone()
     flat = out.reshape(N_PARAMS, -1)
     fine = problem.layout.fine
-    rows = torch.tensor(fine, device=x.device)
+    rows = torch.tensor(fine, dtype=torch.long, device=x.device)
     moved = (flat[rows][:, problem.pixels] + dx[:, fine].T).clamp(-X_LIMIT, X_LIMIT)
     flat[rows[:, None], problem.pixels[None, :]] = moved
     if problem.layout.per_pixel:

@@ -52,7 +52,8 @@ def block_factor(a: torch.Tensor, lam: torch.Tensor | float) -> tuple[torch.Tens
     number): (factor, scale s, seen). An unknown no row sees (zero column) gets an identity row."""
     n = a.shape[-1]
     diag = torch.diagonal(a, dim1=-2, dim2=-1)
-    seen = diag > 1e-24 * diag.amax(dim=-1, keepdim=True).clamp_min(1e-300)
+    top = diag.amax(dim=-1, keepdim=True) if n else diag.new_ones(diag.shape[:-1] + (1,))  # no unknowns: every map on nodes
+    seen = diag > 1e-24 * top.clamp_min(1e-300)
     s = torch.where(seen, torch.sqrt(diag), torch.ones_like(diag))
     scaled = a / (s[..., :, None] * s[..., None, :])
     scaled = torch.where(seen[..., :, None] & seen[..., None, :], scaled, torch.zeros_like(scaled))
