@@ -240,7 +240,8 @@ class ModelSettings(Strict):
             "The layer responses the model combines: 'transport' (each profile's plane integral from "
             "adding-doubling, tabulated by similarity; shapes from diffusion; the unscattered beam through "
             "the epidermis kept collimated: model/layer_totals.py) or 'diffusion' (DWRR08's dipole and "
-            "multipole, the default until the fit on transport sessions and real skin is measured with both). "
+            "multipole, the default until the profiles' shapes match transport too: on sessions rendered by "
+            "transport the totals alone leave the fit's dermal blood +19–35%). "
             "Both against the Monte Carlo: docs/transport.md, \"A forward model that matches transport\"."
         ),
     )

@@ -190,7 +190,7 @@ def demo(
         return time.perf_counter()
 
     t = step(f"1/4 capture (simulated rig, seed {seed}) → {session}")
-    _capture(session, rig, scene, seed, device, truth)
+    simulate_session(session, rig, scene, seed, device, truth)
     times["capture_s"] = time.perf_counter() - t
     t = step(f"2/4 calibrate → {calibrated}")
     _calibrate(session, calibrated)
@@ -213,14 +213,15 @@ def demo(
     typer.echo("times: " + ", ".join(f"{k[:-2]} {v:.0f} s" for k, v in times.items()))
 
 
-def _capture(session: Path, rig, scene: Path, seed: int, device: str, truth: dict) -> None:
-    """A simulated session on the instant simulated wheel, its truth beside the frames."""
+def simulate_session(session: Path, rig, scene: Path, seed: int, device: str = "auto", truth: dict | None = None) -> None:
+    """A simulated session on the instant simulated wheel, its truth beside the frames (``truth``: the
+    simulation's ``truth`` overrides, e.g. ``{"physics": "transport", "photons": 300_000}``)."""
     from .acquire.cli import capture_progress  # noqa: PLC0415
     from .acquire.connect import open_devices  # noqa: PLC0415
     from .acquire.session import AutoOperator, run_session  # noqa: PLC0415
 
     with open_devices(rig, simulated=True, scene=scene, seed=seed, wheel_time_scale=0.0,
-                      device=None if device == "auto" else device, truth=truth) as devices, capture_progress() as progress:
+                      device=None if device == "auto" else device, truth=truth or {}) as devices, capture_progress() as progress:
         run_session(session, devices.rig, devices.wheel, devices.camera, AutoOperator(devices.place), subject="demo",
                     site="simulated forearm", operator_name="skinlayers demo", simulated=True, notes=devices.notes,
                     software_version=software_version(), progress=progress)
