@@ -192,18 +192,12 @@ class TransportRenderer:
         flat = Medium(medium.thickness_mm, medium.n, medium.n_above, medium.n_below, medium.sigma_s_per_mm, medium.anisotropy,
                       sa.contiguous(), tr.contiguous(), medium.mm_per_pixel)
         kernel = torch.zeros(batches, kh, kw, dtype=torch.float64, device=dev)
-        per_walk = max(1, ts.batch_photons // per_batch)
         m = medium.mm_per_pixel
-        for first in range(0, batches, per_walk):
-            group = range(first, min(first + per_walk, batches))
-            g = torch.Generator(device=dev).manual_seed(_stream(stream[0], stream[1], stream[2], first, "twin"))
-            count = per_batch * len(group)
-            jitter = torch.rand(2, count, dtype=torch.float64, device=dev, generator=g) - 0.5
-            label = torch.arange(len(group), device=dev).repeat_interleave(per_batch)
-            tally = walk(flat, jitter[0] * m, jitter[1] * m, torch.full((count,), cos_t, dtype=torch.float64, device=dev),
-                         torch.full((count,), entering, dtype=torch.float64, device=dev), g, label=label, labels=len(group),
-                         roulette_weight=ts.roulette_weight, max_depth_mm=ts.max_depth_mm)
-            kernel[first:first + len(group)] = tally.surface / per_batch
+        for group, g, label in _walk_groups(batches, per_batch, ts.batch_photons, (*stream, "twin"), dev):
+            jitter = torch.rand(2, label.numel(), dtype=torch.float64, device=dev, generator=g) - 0.5
+            tally = walk(flat, jitter[0] * m, jitter[1] * m, torch.full_like(jitter[0], cos_t), torch.full_like(jitter[0], entering), g,
+                         label=label, labels=len(group), roulette_weight=ts.roulette_weight, max_depth_mm=ts.max_depth_mm)
+            kernel[group.start:group.stop] = tally.surface / per_batch
         return kernel
 
     def _tally(self, medium: Medium, irradiance: torch.Tensor, photons: int, stream: tuple[int, float, int], light_angle_deg: float,
@@ -232,21 +226,17 @@ class TransportRenderer:
         surface = torch.zeros(batches, *medium.shape, dtype=torch.float64, device=irradiance.device)
         reflected = torch.zeros(batches, dtype=torch.float64, device=irradiance.device)
         lost = torch.zeros_like(reflected)
-        per_walk = max(1, ts.batch_photons // per_batch)  # batches walked together
         twin_optics = None
         if twin:
             layers = len(medium.thickness_mm)
             twin_optics = (tuple(medium.sigma_a_per_mm.reshape(layers, -1).mean(1).tolist()),
                            tuple(medium.interface_transmittance.reshape(layers - 1, -1).mean(1).tolist()))
-        for first in range(0, batches, per_walk):
-            group = range(first, min(first + per_walk, batches))
-            g = torch.Generator(device=irradiance.device).manual_seed(_stream(*stream, first))
-            count = per_batch * len(group)
+        for group, g, label in _walk_groups(batches, per_batch, ts.batch_photons, stream, irradiance.device):
+            first, count = group.start, label.numel()
             cells = torch.multinomial(weights, count, replacement=True, generator=g)
             jitter = torch.rand(2, count, dtype=torch.float64, device=irradiance.device, generator=g)
             x = ((cells % wl).to(torch.float64) + jitter[0] - wl / 2.0) * m
             y = torch.zeros_like(x) if across_y else ((cells // wl).to(torch.float64) + jitter[1] - hl / 2.0) * m
-            label = torch.arange(len(group), device=irradiance.device).repeat_interleave(per_batch)
             tally = walk(medium, x, y, torch.full_like(x, cos_t), torch.full_like(x, entering), g, label=label, labels=len(group),
                          roulette_weight=ts.roulette_weight, max_depth_mm=ts.max_depth_mm, across_y=across_y, twin=twin_optics)
             measured = tally.surface if twin_optics is None else tally.surface - tally.surface_twin
@@ -266,12 +256,8 @@ def _convolve_kernel(irradiance: torch.Tensor, kernel: torch.Tensor, shape: tupl
     homogeneous medium whose point response is ``kernel`` ``(K, 2·(h + b) − 1, 2·(w + c) − 1)`` (offset 0 at
     its centre; b, c the irradiance's border): Σ_cells E(cell) K(pixel − cell)."""
     h, w = shape
-    hl, wl = irradiance.shape
-    b, c = (hl - h) // 2, (wl - w) // 2
     padded = torch.nn.functional.pad(irradiance[None, None], (w - 1, w - 1, h - 1, h - 1))
-    weight = torch.flip(kernel, dims=(-2, -1))[:, None]
-    out = torch.nn.functional.conv2d(padded.expand(1, 1, -1, -1), weight)[0]
-    return out[:, : h, : w] if out.shape[-2:] != (h, w) else out
+    return torch.nn.functional.conv2d(padded, torch.flip(kernel, dims=(-2, -1))[:, None])[0]
 
 
 def check_physics_options(physics: str | None, photons: int | None) -> None:
@@ -282,6 +268,17 @@ def check_physics_options(physics: str | None, photons: int | None) -> None:
         raise InputError("--photons goes with --physics transport")
     if photons is not None and not MIN_PHOTONS <= photons <= MAX_PHOTONS:
         raise InputError(f"--photons {photons}: expected {MIN_PHOTONS:,}–{MAX_PHOTONS:,} per wavelength")
+
+
+def _walk_groups(batches: int, per_batch: int, batch_photons: int, stream: tuple, device):
+    """The batches walked together (as many as ``batch_photons`` holds): per group its range of batch
+    labels, its generator (keyed by ``stream`` and the group's first batch, ``_stream``) and each
+    photon's label within the group."""
+    per_walk = max(1, batch_photons // per_batch)
+    for first in range(0, batches, per_walk):
+        group = range(first, min(first + per_walk, batches))
+        g = torch.Generator(device=device).manual_seed(_stream(*stream[:3], first, *stream[3:]))
+        yield group, g, torch.arange(len(group), device=device).repeat_interleave(per_batch)
 
 
 def _stream(seed: int, wavelength_nm: float, item: int, batch: int, purpose: str = "") -> int:

@@ -254,11 +254,11 @@ def walk(
                 ux = torch.where(cross, ux / eta, ux)
                 uy = torch.where(cross, uy / eta, uy)
                 uz = torch.where(reflect, -uz, torch.where(cross, torch.sign(uz) * cos_t, uz))
-                which = torch.minimum(layer, other)  # the interface crossed: between layer k and k + 1
-                a = transmit[which.clamp_max(max(n_layers - 2, 0)), flat] if n_layers > 1 else torch.ones_like(wt)
+                which = torch.minimum(layer, other).clamp_max(max(n_layers - 2, 0))  # the interface crossed: between layer k and k + 1
+                a = transmit[which, flat] if n_layers > 1 else torch.ones_like(wt)
                 wt = torch.where(cross, wt * a, wt)
                 if twin is not None:
-                    wtw = torch.where(cross, wtw * twin_transmit[which.clamp_max(max(n_layers - 2, 0))], wtw)
+                    wtw = torch.where(cross, wtw * twin_transmit[which], wtw)
                 layer = torch.where(cross, other, layer)
 
             # roulette, the depth cut, and the survivors

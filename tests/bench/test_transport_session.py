@@ -41,13 +41,18 @@ SIZE = 32
 MODELS = {"diffusion": {"profiles": "diffusion"}, "transport": {"profiles": "transport"}}
 
 
+def _rig():
+    """The rig at the sessions' cube size, its camera simulated (as ``skinlayers demo --size`` makes it)."""
+    return load_rig(geometry={"cube_px": SIZE, "rectify_px": max(2 * SIZE, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
+
+
 def _session(folder, seed: int) -> dict:
     """Capture (unless kept) and calibrate one transport session; its truth's record and the seconds."""
     session, calibrated = folder / "session", folder / "calibrated"
     seconds = {}
     if not (os.environ.get("SKINLAYERS_SESSION_REUSE") and (calibrated / CUBE_NAME).exists()):
         folder.mkdir(parents=True, exist_ok=True)
-        rig = load_rig(geometry={"cube_px": SIZE, "rectify_px": max(2 * SIZE, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
+        rig = _rig()
         scene = folder / "scene.yaml"
         scene.write_text(yaml.safe_dump(demo_scene(), sort_keys=False))
         start = time.perf_counter()
@@ -100,7 +105,7 @@ def test_what_the_fit_makes_of_the_truth_without_noise():
     from skinlayers.model.settings import ModelSettings
 
     rows = []
-    rig = load_rig(geometry={"cube_px": SIZE, "rectify_px": max(2 * SIZE, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
+    rig = _rig()
     for seed in SEEDS:
         folder = out_dir() / f"transport_session_{seed}"
         if not (folder / "calibrated" / CUBE_NAME).exists():
