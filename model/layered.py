@@ -8,7 +8,9 @@ For homogeneous layers the heterogeneous transport of Eq. 7 collapses to product
 
 at every frequency k; at k = 0 it combines the plane integrals (totals). The layer transforms come
 either from the exact multipole (closed form, all dipole pairs: ``method="exact"``) or from the
-Gaussian tables (``method="tables"``), so each checks the other.
+Gaussian tables (``method="tables"``), so each checks the other. With ``profiles: transport`` the
+"exact" layers are adding-doubling's totals (``layer_totals``) with the Monte Carlo's tabulated shapes
+(``layer_shapes``), which the Gaussian tables are fitted to.
 
 Shapes: parameters ``(...)``, wavelengths ``(L,)`` → spectra ``(..., L)``; with frequencies ``(N,)``
 → ``(..., L, N)``.
@@ -22,6 +24,7 @@ from typing import NamedTuple
 import torch
 
 from .gaussians import gaussian_sum_hankel
+from .layer_shapes import shape_transforms
 from .layer_totals import collimated_transmission, layer_totals
 from .params import LayerAbsorption, SkinParams, layer_absorption
 from .profiles import multipole_hankel, multipole_totals
@@ -118,30 +121,25 @@ class SkinModel:
         s_derm = spectra.scattering_dermis.to(ab.epidermis)
         transport = self.settings.profiles == "transport"
         d = o.epidermis_thickness_mm
-        if method == "exact":
-            def totals():
-                """Diffusion's totals: the result, or the transport rescaling's denominator."""
-                return (multipole_totals(ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth),
-                        multipole_totals(ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus)
-
+        if method == "exact" and transport:
+            # transport: adding-doubling's totals, the Monte Carlo's shapes (model/layer_shapes.py)
+            tt = layer_totals(ab.epidermis, s_epi, d, ab.dermis, s_derm, o.n_above, o.n_epidermis, o.n_dermis)
+            targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)
             if k_per_mm is None:
-                epi, r2 = (None, None) if transport else totals()
+                epi, r2 = list(targets), tt.R2_plus
+            else:
+                shape_epi, shape_r2 = shape_transforms(ab.epidermis, s_epi, d, ab.dermis, s_derm, k_per_mm)
+                epi = [t[..., None] * shape for t, shape in zip(targets, shape_epi)]
+                r2 = tt.R2_plus[..., None] * shape_r2
+            epi[1] = epi[1] + self._collimated(tt, k_per_mm)
+        elif method == "exact":
+            if k_per_mm is None:
+                epi = multipole_totals(ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
+                r2 = multipole_totals(ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus
             else:
                 k = torch.as_tensor(k_per_mm).to(ab.epidermis)
                 epi = multipole_hankel(k, ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
                 r2 = multipole_hankel(k, ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus
-            if transport:
-                # transport's totals, diffusion's shapes: each transform rescaled by its total's ratio
-                tt = layer_totals(ab.epidermis, s_epi, d, ab.dermis, s_derm, o.n_above, o.n_epidermis, o.n_dermis)
-                targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)
-                if k_per_mm is None:
-                    epi, r2 = targets, tt.R2_plus
-                else:
-                    diff_epi, diff_r2 = totals()
-                    epi = [e * (t / dt)[..., None] for e, t, dt in zip(epi, targets, diff_epi)]
-                    r2 = r2 * (tt.R2_plus / diff_r2)[..., None]
-                epi = list(epi)
-                epi[1] = epi[1] + self._collimated(tt, k_per_mm)
         else:
             tab = self.tables(wavelength_nm).to(ab.epidermis.device, ab.epidermis.dtype)
             if k_per_mm is None:

@@ -170,7 +170,7 @@ class RenderSettings(Strict):
         description="'segment', the dermis's profile: the segment's variance as a multiple of each Gaussian's (1: its own).",
     )
     coupling_scale_epidermis: float = Field(
-        2.0, gt=0, le=16,
+        1.5, gt=0, le=16,  # refitted on the transport shapes (the step: docs/transport.md)
         description="'segment', the epidermis's profiles: the same multiple.",
     )
     coupling_bridge: float = Field(
@@ -238,10 +238,11 @@ class ModelSettings(Strict):
         "diffusion",
         description=(
             "The layer responses the model combines: 'transport' (each profile's plane integral from "
-            "adding-doubling, tabulated by similarity; shapes from diffusion; the unscattered beam through "
-            "the epidermis kept collimated: model/layer_totals.py) or 'diffusion' (DWRR08's dipole and "
-            "multipole, the default until the profiles' shapes match transport too: on sessions rendered by "
-            "transport the totals alone leave the fit's dermal blood +19–35%). "
+            "adding-doubling and its lateral shape from the project's Monte Carlo, both tabulated by "
+            "similarity; the unscattered beam through the epidermis kept collimated: model/layer_totals.py, "
+            "model/layer_shapes.py) or 'diffusion' (DWRR08's dipole and multipole, still the default: on "
+            "sessions rendered by transport, transport fits melanin and epidermal blood better and dermal "
+            "blood worse, as it does on its own physics at that noise). "
             "Both against the Monte Carlo: docs/transport.md, \"A forward model that matches transport\"."
         ),
     )

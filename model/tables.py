@@ -2,7 +2,9 @@
 
 Scattering is fixed per layer and wavelength, so a profile's Gaussian weights depend on σa alone.
 For each layer and wavelength the tables hold ``n_sigma_a`` log-spaced σa samples × K weights:
-the epidermis's R⁺, T⁺, R⁻, T⁻ (slab, multipole) and the dermis's R⁺ (semi-infinite, dipole).
+the epidermis's R⁺, T⁺, R⁻, T⁻ (slab, multipole) and the dermis's R⁺ (semi-infinite, dipole) — or,
+with ``profiles: transport``, the same five with the Monte Carlo's shapes (``layer_shapes``) and
+adding-doubling's totals (``layer_totals``).
 Lookups interpolate linearly in log σa and are differentiable with respect to σa.
 
 Tables are a cache of the profile model: they are written to disk under a key over every setting
@@ -25,7 +27,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from . import layer_totals
+from . import layer_shapes, layer_totals
 from .gaussians import fit_gaussian_weights, plane_quadrature
 from .profiles import dipole_profile, dipole_total, multipole_profiles, multipole_totals
 from .settings import ModelSettings
@@ -42,7 +44,7 @@ __all__ = [
     "table_key",
 ]
 
-TABLE_FORMAT_VERSION = 3  # 2: extrapolation distances in float64; 3: profiles (transport | diffusion)
+TABLE_FORMAT_VERSION = 4  # 2: extrapolation distances in float64; 3: profiles (transport | diffusion); 4: transport's shapes
 EPIDERMIS_PROFILES = ("R_plus", "T_plus", "R_minus", "T_minus")
 DERMIS_PROFILES = ("R_plus",)
 
@@ -77,6 +79,7 @@ def table_key(settings: ModelSettings, wavelength_nm: torch.Tensor) -> dict:
     }
     if settings.profiles == "transport":
         shaping["transport_tables"] = layer_totals.tables_digest()
+        shaping["transport_shapes"] = layer_shapes.shapes_digest()
     return {
         "version": TABLE_FORMAT_VERSION,
         "profiles": settings.profiles,
@@ -182,9 +185,10 @@ def build_profile_tables(
 ) -> ProfileTables:
     """Fit the Gaussian weights of every profile at every tabulated σa and wavelength (float64).
 
-    With ``settings.profiles == "transport"`` each profile keeps diffusion's shape (the fit) and takes
-    transport's plane integral (``layer_totals``): the weights are rescaled to it. The epidermis's T⁺ is
-    then its *scattered* part only; the renderer adds the unscattered beam per pixel.
+    ``settings.profiles == "diffusion"``: the multipole (epidermis) and dipole (dermis) profiles, DWRR08
+    §4.1–4.5. ``"transport"``: each profile's shape from the Monte Carlo (``layer_shapes``, its line
+    spread fitted) and its plane integral from adding-doubling (``layer_totals``). The epidermis's T⁺
+    is then its *scattered* part only; the renderer adds the unscattered beam per pixel.
     """
     settings = settings or ModelSettings()
     opt, tab = settings.optics, settings.tables
@@ -202,26 +206,23 @@ def build_profile_tables(
     eta_derm = opt.n_dermis / opt.n_epidermis
     for j in range(n_wl):
         s_epi = spectra.scattering_epidermis[j]
-        prof = multipole_profiles(
-            r_t, sigma_a, s_epi, opt.epidermis_thickness_mm, eta_top, eta_mid,
-            tol=tab.multipole_tolerance, source_depth=opt.source_depth,
-        )
-        tot = multipole_totals(sigma_a, s_epi, opt.epidermis_thickness_mm, eta_top, eta_mid, source_depth=opt.source_depth)
-        for p in range(len(EPIDERMIS_PROFILES)):
-            epi[j, p] = fit_gaussian_weights(prof[p].numpy(), tot[p].numpy(), variances, r, q)
         s_derm = spectra.scattering_dermis[j]
-        derm[j, 0] = fit_gaussian_weights(
-            dipole_profile(r_t, sigma_a, s_derm, eta_derm).numpy(),
-            dipole_total(sigma_a, s_derm, eta_derm).numpy(),
-            variances, r, q,
-        )
         if settings.profiles == "transport":
-            tt = layer_totals.layer_totals(sigma_a, s_epi, opt.epidermis_thickness_mm, sigma_a, s_derm,
-                                           opt.n_above, opt.n_epidermis, opt.n_dermis)
-            targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)
-            for p, target in enumerate(targets):
-                epi[j, p] *= (target.numpy() / np.maximum(epi[j, p].sum(-1), 1e-300))[:, None]
-            derm[j, 0] *= (tt.R2_plus.numpy() / np.maximum(derm[j, 0].sum(-1), 1e-300))[:, None]
+            epi[j], derm[j] = _transport_weights(sigma_a, s_epi, s_derm, opt, variances)
+        else:
+            prof = multipole_profiles(
+                r_t, sigma_a, s_epi, opt.epidermis_thickness_mm, eta_top, eta_mid,
+                tol=tab.multipole_tolerance, source_depth=opt.source_depth,
+            )
+            tot = multipole_totals(sigma_a, s_epi, opt.epidermis_thickness_mm, eta_top, eta_mid,
+                                   source_depth=opt.source_depth)
+            for p in range(len(EPIDERMIS_PROFILES)):
+                epi[j, p] = fit_gaussian_weights(prof[p].numpy(), tot[p].numpy(), variances, r, q)
+            derm[j, 0] = fit_gaussian_weights(
+                dipole_profile(r_t, sigma_a, s_derm, eta_derm).numpy(),
+                dipole_total(sigma_a, s_derm, eta_derm).numpy(),
+                variances, r, q,
+            )
         if progress is not None:
             progress(j + 1, n_wl)
     return ProfileTables(
@@ -232,6 +233,21 @@ def build_profile_tables(
         dermis=torch.from_numpy(derm),
         key=table_key(settings, spectra.wavelength_nm),
     )
+
+
+def _transport_weights(sigma_a: torch.Tensor, s_epi: torch.Tensor, s_derm: torch.Tensor, opt,
+                       variances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One wavelength's weights ``(4, S, K)`` and ``(1, S, K)``: Monte Carlo shapes, adding-doubling totals."""
+    tt = layer_totals.layer_totals(sigma_a, s_epi, opt.epidermis_thickness_mm, sigma_a, s_derm,
+                                   opt.n_above, opt.n_epidermis, opt.n_dermis)
+    sa, se, sd = sigma_a.numpy(), float(s_epi), float(s_derm)
+    slab = layer_shapes.slab_shapes(np.log10(sa / se), math.log10(se * opt.epidermis_thickness_mm))
+    targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)
+    epi = np.stack([layer_shapes.fit_line_spread_weights(slab[p], sa + se, t.numpy(), variances)
+                    for p, t in enumerate(targets)])
+    derm = layer_shapes.fit_line_spread_weights(layer_shapes.half_space_shape(np.log10(sa / sd)), sa + sd,
+                                                tt.R2_plus.numpy(), variances)
+    return epi, derm[None]
 
 
 def load_profile_tables(

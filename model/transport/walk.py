@@ -102,7 +102,9 @@ class Tally:
     ``reflected`` / ``transmitted`` ``(K,)``: out of the top / bottom (scattered only);
     ``unscattered_reflected``, ``unscattered_transmitted`` ``(K,)``; ``lost`` ``(K,)``: the weight of photons
     still alive at the step cap; ``steps``: the iterations run; ``surface_twin`` ``(K, H, W)``: the
-    homogeneous twin's surface tally from the same photons (``walk``'s ``twin``), else None."""
+    homogeneous twin's surface tally from the same photons (``walk``'s ``twin``), else None; ``bottom``
+    ``(K, H, W)``: the scattered weight out of the bottom of a finite stack per pixel (``walk``'s
+    ``tally_bottom``), else None."""
 
     surface: torch.Tensor
     reflected: torch.Tensor
@@ -112,12 +114,14 @@ class Tally:
     lost: torch.Tensor
     steps: int
     surface_twin: torch.Tensor | None = None
+    bottom: torch.Tensor | None = None
 
 
 def walk(
     medium: Medium, x: torch.Tensor, y: torch.Tensor, cos_in: torch.Tensor, weight: torch.Tensor, generator: torch.Generator,
     *, label: torch.Tensor | None = None, labels: int = 1, roulette_weight: float = 1e-4, max_depth_mm: float = 50.0,
     across_y: bool = False, azimuth: torch.Tensor | None = None, twin: tuple[tuple[float, ...], tuple[float, ...]] | None = None,
+    tally_bottom: bool = False,
 ) -> Tally:
     """Walk photons that have just entered the top layer at (``x``, ``y``) with direction cosine
     ``cos_in`` (> 0, into the skin; in the x–z plane, or at ``azimuth`` (radians) from the x axis) and
@@ -128,7 +132,10 @@ def walk(
     one line, each photon counting where a 2-D tally would keep one in hundreds.
 
     ``twin``: (σa per layer (per mm), transmittance per interface) of a homogeneous twin walked with the
-    same photons (the module docstring); its tally is ``Tally.surface_twin``."""
+    same photons (the module docstring); its tally is ``Tally.surface_twin``.
+
+    ``tally_bottom``: also tally, per pixel, the scattered light leaving the bottom of a finite stack
+    (``Tally.bottom``; a slab's transmittance profile)."""
     dev, f64 = x.device, torch.float64
     h, w = medium.shape
     m = medium.mm_per_pixel
@@ -167,6 +174,9 @@ def walk(
     batch = torch.zeros(p, dtype=torch.long, device=dev) if label is None else label.to(dev, torch.long)
     surface = torch.zeros(labels * h * w, dtype=f64, device=dev)
     surface_twin = torch.zeros_like(surface) if twin is not None else None
+    if tally_bottom and not math.isfinite(medium.thickness_mm[-1]):
+        raise ValueError("tally_bottom needs a finite stack (a half-space has no bottom)")
+    below = torch.zeros_like(surface) if tally_bottom else None
     totals = torch.zeros(4 * labels, dtype=f64, device=dev)  # per label: reflected, transmitted, unscattered R, unscattered T
 
     def add(kind: int, where: torch.Tensor, amount: torch.Tensor) -> None:
@@ -238,6 +248,9 @@ def walk(
                 out = torch.where(bottom, wt * (1.0 - r), torch.zeros_like(wt))
                 add(1, bottom & scattered, out)
                 add(3, bottom & ~scattered, out)
+                if below is not None:
+                    keep = bottom & scattered & inside
+                    below.index_add_(0, batch[keep] * (h * w) + flat[keep], out[keep])
                 wt = torch.where(bottom, wt * r, wt)
                 if twin is not None:
                     wtw = torch.where(bottom, wtw * r, wtw)
@@ -284,7 +297,8 @@ def walk(
     lost = torch.zeros(labels, dtype=f64, device=dev).index_add_(0, batch, wt)
     per = totals.reshape(labels, 4)
     return Tally(surface.reshape(labels, h, w), per[:, 0], per[:, 1], per[:, 2], per[:, 3], lost, steps,
-                 None if twin is None else surface_twin.reshape(labels, h, w))
+                 None if twin is None else surface_twin.reshape(labels, h, w),
+                 None if below is None else below.reshape(labels, h, w))
 
 
 def _scatter(ux, uy, uz, where, g: float, generator):

@@ -58,8 +58,8 @@ from skinlayers.model import tables as tables_module
 from skinlayers.model.gaussians import plane_quadrature
 from skinlayers.model.tables import load_profile_tables
 
-#: The audit checks the Gaussian fits of the diffusion profiles; the transport tables are the same fits
-#: rescaled to transport's totals (their totals against model/layer_totals: test_transport_profiles.py).
+#: The audit checks the Gaussian fits of the diffusion profiles; the transport tables are fitted to the
+#: Monte Carlo's line spreads (their transforms against those shapes: test_transport_profiles.py).
 DIFFUSION = ModelSettings(profiles="diffusion")
 F64 = torch.float64
 K_GRID = torch.logspace(-4, 5, 6000, dtype=F64)

@@ -177,10 +177,11 @@ def test_other_indices_are_refused_with_the_way_out(tmp_path):
     assert math.isfinite(float(SkinModel(diffusion).diffuse_reflectance(SkinParams.from_mapping(TABLE2["I interior"]), WL_DENSE[:2])[0]))
 
 
-def test_transforms_from_tables_match_the_closed_forms():
+def test_transforms_from_tables_match_the_transport_shapes():
     """The Hankel transforms of the combined profile, transport profiles: the renderer's Gaussian
-    tables against the closed forms (diffusion's transforms rescaled to transport's totals, the
-    unscattered beam constant in k), relative to the total, over k up to 20 mm⁻¹."""
+    tables against the layers they were fitted to (adding-doubling's totals with the Monte Carlo's
+    tabulated line spreads, the unscattered beam constant in k), relative to the total, over k up to
+    20 mm⁻¹: within 0.6% (measured: 0.42% at worst)."""
     model = SkinModel(TRANSPORT)
     wl = torch.tensor([430.0, 560.0, 670.0], dtype=F64)
     k = torch.linspace(0.0, 20.0, 41, dtype=F64)
@@ -188,7 +189,7 @@ def test_transforms_from_tables_match_the_closed_forms():
         params = SkinParams.from_mapping(TABLE2[row])
         exact = model.combined_hankel(params, wl, k, method="exact")
         tables = model.combined_hankel(params, wl, k, method="tables")
-        assert float(((tables - exact).abs() / exact[..., :1]).max()) < 0.01
+        assert float(((tables - exact).abs() / exact[..., :1]).max()) < 0.006
         torch.testing.assert_close(exact[..., 0], model.total_reflectance(params, wl), rtol=1e-10, atol=0)
 
 
