@@ -48,6 +48,8 @@ import torch
 from scipy.optimize import nnls
 from scipy.special import erf
 
+from .layer_totals import read_table
+
 __all__ = [
     "HALF_SPACE_X",
     "SLAB_PROFILES",
@@ -104,24 +106,17 @@ def _fold(columns: np.ndarray) -> np.ndarray:
 # -- reading ------------------------------------------------------------------------------------
 
 
-def _read(name: str) -> tuple[np.ndarray, list[str], list[str]]:
-    text = files("skinlayers.model").joinpath("data", name).read_text()
-    comments = [line for line in text.splitlines() if line.startswith("#")]
-    body = [line for line in text.splitlines() if line and not line.startswith("#")]
-    return np.array([[float(v) for v in line.split(",")] for line in body[1:]]), body[0].split(","), comments
-
-
 @functools.lru_cache(maxsize=None)
 def _tables() -> dict:
     """Shares per bin: slab ``(4, X, Y, B)``, half-space ``(X, B)``."""
     edges = shape_edges()
     n_bins = edges.size - 1
-    slab, header, slab_notes = _read(SLAB_FILE)
+    slab, header, slab_notes = read_table(SLAB_FILE)
     if header != ["x", "y", "xi_lo", "xi_hi", *SLAB_PROFILES] or slab.shape[0] != SLAB_X.size * SLAB_Y.size * n_bins:
         raise ValueError(f"{SLAB_FILE}: the columns or grid are not the ones this module reads")
     if not np.allclose(slab[:n_bins, 2], edges[:-1], rtol=1e-5, atol=1e-9):  # written to 6 digits
         raise ValueError(f"{SLAB_FILE}: bin edges differ from this module's")
-    half, header, half_notes = _read(HALF_SPACE_FILE)
+    half, header, half_notes = read_table(HALF_SPACE_FILE)
     if header != ["x", "xi_lo", "xi_hi", "share"] or half.shape[0] != HALF_SPACE_X.size * n_bins:
         raise ValueError(f"{HALF_SPACE_FILE}: the columns or grid are not the ones this module reads")
     return {
@@ -342,6 +337,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "data")
     parser.add_argument("--photons-scale", type=float, default=1.0, help="photons a node, as a multiple of the default")
     args = parser.parse_args(argv)
+    if not args.photons_scale > 0:
+        parser.error(f"--photons-scale must be > 0, got {args.photons_scale}")
     build(args.out, args.photons_scale)
 
 

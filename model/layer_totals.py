@@ -130,8 +130,8 @@ X_GRID, Y_GRID = _axis(X_MIN, X_MAX, X_STEP), _axis(Y_MIN, Y_MAX, Y_STEP)
 # -- reading ------------------------------------------------------------------------------------
 
 
-def _read(name: str) -> tuple[np.ndarray, list[str], list[str]]:
-    """Rows (comments dropped), the header's names and the comment lines (source and units)."""
+def read_table(name: str) -> tuple[np.ndarray, list[str], list[str]]:
+    """A package data CSV: rows (comments dropped), the header's names and the comment lines (source and units)."""
     text = files("skinlayers.model").joinpath("data", name).read_text()
     comments = [line for line in text.splitlines() if line.startswith("#")]
     body = [line for line in text.splitlines() if line and not line.startswith("#")]
@@ -142,14 +142,14 @@ def _read(name: str) -> tuple[np.ndarray, list[str], list[str]]:
 @functools.lru_cache(maxsize=None)
 def _tables() -> dict:
     """The shipped tables as float64 log-values: slab ``(4, X, Y)``, half-space ``(2, X)``."""
-    slab, header, slab_notes = _read(SLAB_FILE)
+    slab, header, slab_notes = read_table(SLAB_FILE)
     if header != ["x", "y", *SLAB_COLUMNS]:
         raise ValueError(f"{SLAB_FILE}: unexpected columns {header}")
     nx, ny = X_GRID.size, Y_GRID.size
     if slab.shape[0] != nx * ny or not np.allclose(slab[:, 0].reshape(nx, ny)[:, 0], X_GRID) \
             or not np.allclose(slab[:, 1].reshape(nx, ny)[0], Y_GRID):
         raise ValueError(f"{SLAB_FILE}: the grid is not the one this module reads (x, y as in layer_totals)")
-    half, header, half_notes = _read(HALF_SPACE_FILE)
+    half, header, half_notes = read_table(HALF_SPACE_FILE)
     if header != ["x", *HALF_SPACE_COLUMNS] or not np.allclose(half[:, 0], X_GRID):
         raise ValueError(f"{HALF_SPACE_FILE}: unexpected columns or grid")
     indices = [line.split()[2:] for line in slab_notes if line.startswith("# indices:")]

@@ -63,6 +63,25 @@ def _session(folder, seed: int) -> dict:
     return {"truth": truth, **seconds}
 
 
+def _kept(seed: int):
+    """A session captured by the first test (skip if absent): its folder, calibrated cube and scene."""
+    from skinlayers.acquire.scene import scene_from_dict
+    from skinlayers.formats.cube import read_cube
+
+    folder = out_dir() / f"transport_session_{seed}"
+    if not (folder / "calibrated" / CUBE_NAME).exists():
+        pytest.skip(f"{folder}: run test_sessions_rendered_by_transport_fitted_with_each_model first")
+    return folder, read_cube(folder / "calibrated" / CUBE_NAME), scene_from_dict(yaml.safe_load((folder / "scene.yaml").read_text()))
+
+
+def _own_render(rig, scene, seed: int, overrides: dict) -> torch.Tensor:
+    """The model's own render of the truth maps (the simulator's diffusion path with these model settings)."""
+    from skinlayers.acquire.simulated import SimulatedBench
+    from skinlayers.model.settings import ModelSettings
+
+    return SimulatedBench(rig, scene, seed=seed, model_settings=ModelSettings(**overrides), device="cpu").truth_reflectance().float()
+
+
 def test_sessions_rendered_by_transport_fitted_with_each_model():
     rows = []
     for seed in SEEDS:
@@ -98,24 +117,16 @@ def test_what_the_fit_makes_of_the_truth_without_noise():
     the fit's own floor. Writes ``transport_session_noiseless.csv``."""
     import numpy as np
 
-    from skinlayers.acquire.scene import scene_from_dict
-    from skinlayers.acquire.simulated import SimulatedBench
-    from skinlayers.formats.cube import Cube, read_cube, write_cube
+    from skinlayers.formats.cube import Cube, write_cube
     from skinlayers.formats.exr import read_exr
-    from skinlayers.model.settings import ModelSettings
 
     rows = []
     rig = _rig()
     for seed in SEEDS:
-        folder = out_dir() / f"transport_session_{seed}"
-        if not (folder / "calibrated" / CUBE_NAME).exists():
-            pytest.skip(f"{folder}: run test_sessions_rendered_by_transport_fitted_with_each_model first")
-        cube = read_cube(folder / "calibrated" / CUBE_NAME)
+        folder, cube, scene = _kept(seed)
         channels, _ = read_exr(folder / "session" / "truth" / "reflectance.exr")
         mc = torch.stack([torch.as_tensor(np.asarray(channels[f"R_{w:g}"])) for w in cube.header.wavelengths_nm]).float()
-        scene = scene_from_dict(yaml.safe_load((folder / "scene.yaml").read_text()))
-        bench = SimulatedBench(rig, scene, seed=seed, model_settings=ModelSettings(profiles="transport"), device="cpu")
-        own = bench.truth_reflectance().float()
+        own = _own_render(rig, scene, seed, MODELS["transport"])
         ratio = own.double() / mc.double()
         centre = ratio[:, SIZE // 4: 3 * SIZE // 4, SIZE // 4: 3 * SIZE // 4].reshape(ratio.shape[0], -1).median(1).values
         for truth, reflectance in (("monte_carlo", mc), ("model_itself", own)):
@@ -141,23 +152,15 @@ def test_each_models_floor_at_the_sessions_noise():
     0.004: the cube's 0.0036 and the Monte Carlo's 0.0015 together), fitted with the same model.
     A map error here is the data's limit for that model, not a mismatch with transport. Writes
     ``transport_session_floor.csv``."""
-    from skinlayers.acquire.scene import scene_from_dict
-    from skinlayers.acquire.simulated import SimulatedBench
-    from skinlayers.formats.cube import Cube, read_cube, write_cube
-    from skinlayers.model.settings import ModelSettings
+    from skinlayers.formats.cube import Cube, write_cube
 
     noise = float(os.environ.get("SKINLAYERS_FLOOR_NOISE", 0.004))
     rows = []
     rig = _rig()
     for seed in SEEDS:
-        folder = out_dir() / f"transport_session_{seed}"
-        if not (folder / "calibrated" / CUBE_NAME).exists():
-            pytest.skip(f"{folder}: run test_sessions_rendered_by_transport_fitted_with_each_model first")
-        cube = read_cube(folder / "calibrated" / CUBE_NAME)
-        scene = scene_from_dict(yaml.safe_load((folder / "scene.yaml").read_text()))
+        folder, cube, scene = _kept(seed)
         for model, overrides in MODELS.items():
-            bench = SimulatedBench(rig, scene, seed=seed, model_settings=ModelSettings(**overrides), device="cpu")
-            own = bench.truth_reflectance().float()
+            own = _own_render(rig, scene, seed, overrides)
             g = torch.Generator().manual_seed(seed)
             path = folder / f"cube_floor_{model}.exr"
             write_cube(path, Cube(own + noise * torch.randn(own.shape, generator=g), cube.mask, cube.header))
