@@ -254,10 +254,16 @@ class TransportRenderer:
 def _convolve_kernel(irradiance: torch.Tensor, kernel: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
     """The exitance ``(K, h, w)`` on the medium's grid (centred in the irradiance's ``(hl, wl)``) of a
     homogeneous medium whose point response is ``kernel`` ``(K, 2·(h + b) − 1, 2·(w + c) − 1)`` (offset 0 at
-    its centre; b, c the irradiance's border): Σ_cells E(cell) K(pixel − cell)."""
+    its centre; b, c the irradiance's border): Σ_cells E(cell) K(pixel − cell). By FFT: the kernel is
+    twice the lit field's side, so a direct convolution's work and memory grow with the fourth power of
+    the side (a 128² cube under the window asked for 230 GB)."""
     h, w = shape
-    padded = torch.nn.functional.pad(irradiance[None, None], (w - 1, w - 1, h - 1, h - 1))
-    return torch.nn.functional.conv2d(padded, torch.flip(kernel, dims=(-2, -1))[:, None])[0]
+    hl, wl = irradiance.shape
+    kh, kw = kernel.shape[-2:]
+    fh, fw = hl + kh - 1, wl + kw - 1  # the full linear convolution: no wrap-around
+    full = torch.fft.irfft2(torch.fft.rfft2(irradiance, s=(fh, fw)) * torch.fft.rfft2(kernel, s=(fh, fw)), s=(fh, fw))
+    top, left = (hl - h) // 2 + (kh - 1) // 2, (wl - w) // 2 + (kw - 1) // 2  # pixel (0, 0) at offset 0
+    return full[:, top: top + h, left: left + w]
 
 
 def check_physics_options(physics: str | None, photons: int | None) -> None:

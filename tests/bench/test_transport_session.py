@@ -1,10 +1,10 @@
 """Benchmark: sessions whose skin the Monte Carlo rendered, calibrated and fitted with each model
 (run on demand: ``pytest -m bench tests/bench/test_transport_session.py -s``).
 
-For each of ``SEEDS`` (seeds no default was tuned on), a 32² session of the demo's scene (smooth
-variation, ten freckles, a scar, a vein; no hairs) is captured by the simulated rig with
-``truth.physics: transport`` (``SKINLAYERS_SESSION_PHOTONS`` photons per wavelength node, default
-300,000, the homogeneous twin on), calibrated once, and reconstructed twice: with the fit's model on
+For each of ``SEEDS`` (seeds no default was tuned on), a 32² session (``SKINLAYERS_SESSION_SIZE``)
+of the demo's scene (smooth variation, ten freckles, a scar, a vein; no hairs) is captured by the
+simulated rig with ``truth.physics: transport`` (``SKINLAYERS_SESSION_PHOTONS`` photons per
+wavelength node, default 300,000, the homogeneous twin on), calibrated once, and reconstructed twice: with the fit's model on
 ``profiles: diffusion`` (DWRR08's) and on ``profiles: transport``. The error of each against the
 truth maps is what the fit's physics costs on light it did not make. Writes
 ``transport_session.csv`` (``bench_io``): per seed, model and parameter the median error, the truth's
@@ -36,9 +36,21 @@ pytestmark = pytest.mark.bench
 
 PHOTONS = int(os.environ.get("SKINLAYERS_SESSION_PHOTONS", 300_000))
 SEEDS = tuple(int(s) for s in os.environ.get("SKINLAYERS_SESSION_SEEDS", "21,22,23").split(","))
-SIZE = 32
+#: The cube's side (``SKINLAYERS_SESSION_SIZE``): 32 by default; the Monte Carlo's time hardly
+#: depends on it (the photons are per wavelength node), its noise per pixel grows with it.
+SIZE = int(os.environ.get("SKINLAYERS_SESSION_SIZE", 32))
 #: The fit's model, each way: the ``model:`` overrides of the fit settings.
 MODELS = {"diffusion": {"profiles": "diffusion"}, "transport": {"profiles": "transport"}}
+
+
+def _folder(seed: int):
+    """A seed's session folder in the output folder (sizes other than 32 keep their own)."""
+    return out_dir() / (f"transport_session_{seed}" + ("" if SIZE == 32 else f"_{SIZE}px"))
+
+
+def _csv(name: str) -> str:
+    """A CSV's name, with the size unless it is 32 (the published tables)."""
+    return name if SIZE == 32 else name.replace(".csv", f"_{SIZE}px.csv")
 
 
 def _rig():
@@ -68,7 +80,7 @@ def _kept(seed: int):
     from skinlayers.acquire.scene import scene_from_dict
     from skinlayers.formats.cube import read_cube
 
-    folder = out_dir() / f"transport_session_{seed}"
+    folder = _folder(seed)
     if not (folder / "calibrated" / CUBE_NAME).exists():
         pytest.skip(f"{folder}: run test_sessions_rendered_by_transport_fitted_with_each_model first")
     return folder, read_cube(folder / "calibrated" / CUBE_NAME), scene_from_dict(yaml.safe_load((folder / "scene.yaml").read_text()))
@@ -85,7 +97,7 @@ def _own_render(rig, scene, seed: int, overrides: dict) -> torch.Tensor:
 def test_sessions_rendered_by_transport_fitted_with_each_model():
     rows = []
     for seed in SEEDS:
-        folder = out_dir() / f"transport_session_{seed}"
+        folder = _folder(seed)
         made = _session(folder, seed)
         truth = made["truth"]
         for model, overrides in MODELS.items():
@@ -104,7 +116,7 @@ def test_sessions_rendered_by_transport_fitted_with_each_model():
                 rows.append({**common, "parameter": name, "median_error": round(p["median_error"], 4), "error_kind": p["error_kind"],
                              "truth_median": p["truth_median"], "fit_median": p["fit_median"], "sigma_median": p["sigma_median"]})
             print(seed, model, {n: round(p["median_error"], 3) for n, p in accuracy["parameters"].items()}, common)
-    write_csv("transport_session.csv", rows, f"{PHOTONS:,} photons per node, {SIZE}² cube, seeds {SEEDS}")
+    write_csv(_csv("transport_session.csv"), rows, f"{PHOTONS:,} photons per node, {SIZE}² cube, seeds {SEEDS}")
     assert all(r["median_error"] >= 0 for r in rows)
 
 
@@ -142,7 +154,7 @@ def test_what_the_fit_makes_of_the_truth_without_noise():
                              "residual_rms": round(accuracy["residual_rms"], 5),
                              "model_over_mc_centre_per_band": " ".join(f"{float(v):.4f}" for v in centre)})
             print(seed, truth, {n: round(p["median_error"], 3) for n, p in accuracy["parameters"].items()}, round(accuracy["residual_rms"], 5))
-    write_csv("transport_session_noiseless.csv", rows, f"seeds {SEEDS}, fitted with profiles: transport")
+    write_csv(_csv("transport_session_noiseless.csv"), rows, f"seeds {SEEDS}, fitted with profiles: transport")
     assert all(r["median_error"] >= 0 for r in rows)
 
 
@@ -173,5 +185,31 @@ def test_each_models_floor_at_the_sessions_noise():
                              "fit_over_truth_median": round(p["fit_median"] / p["truth_median"], 4) if name != "beta_m" else "",
                              "residual_rms": round(accuracy["residual_rms"], 5)})
             print(seed, model, {n: round(p["median_error"], 3) for n, p in accuracy["parameters"].items()}, round(accuracy["residual_rms"], 5))
-    write_csv("transport_session_floor.csv", rows, f"seeds {SEEDS}, white noise {noise}, each model on its own render")
+    write_csv(_csv("transport_session_floor.csv"), rows, f"seeds {SEEDS}, white noise {noise}, each model on its own render")
+    assert all(r["median_error"] >= 0 for r in rows)
+
+
+def test_dermal_blood_grid_on_transport_sessions():
+    """The kept sessions refitted with dermal blood on nodes of ``SKINLAYERS_GRID_MM`` (default 0.375,
+    today's, then 0.75 and 1.5 mm), each model. Under transport physics a pixel's dermal blood is hard
+    to tell from its neighbours' (the Cramér–Rao bound, ``test_bench_identifiability.py``,
+    ``test_bound_under_each_models_physics``): a coarser grid trades that noise for the truth's own
+    variation within a node. Writes ``transport_session_grid.csv``."""
+    cells = tuple(float(c) for c in os.environ.get("SKINLAYERS_GRID_MM", "0.375,0.75,1.5").split(","))
+    rows = []
+    for seed in SEEDS:
+        folder, _, _ = _kept(seed)
+        cube = folder / "calibrated" / CUBE_NAME
+        for model, overrides in MODELS.items():
+            for cell in cells:
+                reconstruction = folder / f"reconstruction_grid_{model}_{cell:g}"
+                reconstruct_cube(cube, reconstruction, load_fit_settings(None, model=overrides, map_cell_mm={"C_hd": cell}), device="cpu", force=True)
+                accuracy = accuracy_against_truth(folder / "session", reconstruction, cube)
+                for name, p in accuracy["parameters"].items():
+                    rows.append({"seed": seed, "model": model, "C_hd_cell_mm": cell, "parameter": name,
+                                 "median_error": round(p["median_error"], 4),
+                                 "fit_over_truth_median": round(p["fit_median"] / p["truth_median"], 4) if name != "beta_m" else "",
+                                 "residual_rms": round(accuracy["residual_rms"], 5)})
+                print(seed, model, cell, {n: round(p["median_error"], 3) for n, p in accuracy["parameters"].items()})
+    write_csv(_csv("transport_session_grid.csv"), rows, f"seeds {SEEDS}, C_hd on nodes of {cells} mm, each model")
     assert all(r["median_error"] >= 0 for r in rows)
