@@ -222,7 +222,7 @@ class TransportSettings(Strict):
         ),
     )
     twin_kernel_share: float = Field(
-        0.125, gt=0, le=4,
+        1.0, gt=0, le=4,
         description="twin: photons for the twin's exact image (its point response, pooled over the plane), as a share of the scene's.",
     )
 

@@ -4,13 +4,14 @@
 For each of ``SEEDS`` (seeds no default was tuned on), a 32² session (``SKINLAYERS_SESSION_SIZE``)
 of the demo's scene (smooth variation, ten freckles, a scar, a vein; no hairs) is captured by the
 simulated rig with ``truth.physics: transport`` (``SKINLAYERS_SESSION_PHOTONS`` photons per
-wavelength node, default 300,000, the homogeneous twin on), calibrated once, and reconstructed twice: with the fit's model on
-``profiles: diffusion`` (DWRR08's) and on ``profiles: transport``. The error of each against the
-truth maps is what the fit's physics costs on light it did not make. Writes
-``transport_session.csv`` (``bench_io``): per seed, model and parameter the median error, the truth's
-and the fit's medians, the median σ; the residual, the cube's noise against its truth, the truth's
-own Monte Carlo standard error, the capture's and the fit's seconds. ``SKINLAYERS_SESSION_REUSE=1``
-keeps sessions already captured in the output folder (only the fits rerun).
+wavelength node, default 150,000, and as many for the homogeneous twin's kernel), calibrated once,
+and reconstructed twice: with the fit's model on ``profiles: diffusion`` (DWRR08's) and on
+``profiles: transport``. The error of each against the truth maps is what the fit's physics costs on
+light it did not make. Writes ``transport_session.csv`` (``bench_io``): per seed, model and
+parameter the median error, the truth's and the fit's medians, the median σ; the residual, the
+cube's noise against its truth, the truth's own Monte Carlo standard error, the capture's and the
+fit's seconds. ``SKINLAYERS_SESSION_REUSE=1`` keeps sessions already captured in the output folder
+(only the fits rerun).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from skinlayers.reconstruct import load_fit_settings, reconstruct_cube
 
 pytestmark = pytest.mark.bench
 
-PHOTONS = int(os.environ.get("SKINLAYERS_SESSION_PHOTONS", 300_000))
+PHOTONS = int(os.environ.get("SKINLAYERS_SESSION_PHOTONS", 150_000))
 SEEDS = tuple(int(s) for s in os.environ.get("SKINLAYERS_SESSION_SEEDS", "21,22,23").split(","))
 #: The cube's side (``SKINLAYERS_SESSION_SIZE``): 32 by default; the Monte Carlo's time hardly
 #: depends on it (the photons are per wavelength node), its noise per pixel grows with it.
