@@ -16,8 +16,6 @@ Writes ``identifiability.csv``. The bound scales with the noise: ×0.1 noise, ×
 
 from __future__ import annotations
 
-import csv
-
 import pytest
 import torch
 
@@ -27,7 +25,7 @@ from skinlayers.model.illumination import Light
 from skinlayers.model.maps import SkinMaps
 from skinlayers.model.renderer import SkinRenderer
 
-from bench_io import out_dir  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
 
 pytestmark = pytest.mark.bench
 
@@ -86,11 +84,7 @@ def test_cramer_rao_bound_of_the_map_fit():
         for case, values in bound(block=block).items():
             rows.append({"block": block, "case": case, **{f"sd_log_{k}": round(v, 4) for k, v in values.items()}})
             print(rows[-1])
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    with (out_dir() / "identifiability.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=keys)
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv("identifiability.csv", rows)
     # more free neighbours can only loosen the bound
     c_hd = {(r["block"], r["case"]): r["sd_log_C_hd"] for r in rows}
     assert c_hd[(4, "all five free")] >= c_hd[(2, "all five free")] * 0.999
@@ -110,11 +104,7 @@ def test_bound_under_each_models_physics():
                 rows.append({"size": size, "mm_per_pixel": round(7.5 / size, 4), "profiles": profiles, "case": case,
                              **{f"sd_log_{k}": round(v, 4) for k, v in values.items()}})
                 print(rows[-1])
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    with (out_dir() / "identifiability_profiles.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=keys)
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv("identifiability_profiles.csv", rows)
     c_hd = {(r["size"], r["profiles"], r["case"]): r["sd_log_C_hd"] for r in rows}
     # a pixel among free neighbours can only be known less well than alone
     assert all(c_hd[(n, p, "all five free")] >= 0.999 * c_hd[(n, p, "own pixel only")] for n in (32, 64) for p in ("diffusion", "transport"))
@@ -163,12 +153,7 @@ def test_bound_with_maps_on_nodes():
     −0.89 at III interior); shared over a node's pixels, C_m's bound falls ~4×. Writes
     ``identifiability_shared.csv``."""
     rows = shared_bound()
-    for row in rows:
-        print(row)
-    with (out_dir() / "identifiability_shared.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv("identifiability_shared.csv", rows)
     alone = rows[0]["sd_log_C_m"]
     shared = next(r for r in rows if r["shared"] == "beta_m, C_bc" and r["pixels_per_value"] == 64)["sd_log_C_m"]
     assert shared < 0.5 * alone

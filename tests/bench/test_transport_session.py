@@ -95,6 +95,20 @@ def _own_render(rig, scene, seed: int, overrides: dict) -> torch.Tensor:
     return SimulatedBench(rig, scene, seed=seed, model_settings=ModelSettings(**overrides), device="cpu").truth_reflectance().float()
 
 
+def _fit(folder, cube_path, name: str, settings) -> dict:
+    """Fit ``cube_path`` into ``folder / name`` with ``settings``: its accuracy against the session's truth."""
+    reconstruction = folder / name
+    reconstruct_cube(cube_path, reconstruction, settings, device="cpu", force=True)
+    return accuracy_against_truth(folder / "session", reconstruction, cube_path)
+
+
+def _map_rows(accuracy: dict, keys: dict) -> list[dict]:
+    """A row per map: ``keys``, the median error, the fit's median over the truth's, the residual."""
+    return [{**keys, "parameter": name, "median_error": round(p["median_error"], 4),
+             "fit_over_truth_median": round(p["fit_median"] / p["truth_median"], 4) if name != "beta_m" else "",
+             "residual_rms": round(accuracy["residual_rms"], 5)} for name, p in accuracy["parameters"].items()]
+
+
 def test_sessions_rendered_by_transport_fitted_with_each_model():
     rows = []
     for seed in SEEDS:
@@ -145,9 +159,7 @@ def test_what_the_fit_makes_of_the_truth_without_noise():
         for truth, reflectance in (("monte_carlo", mc), ("model_itself", own)):
             path = folder / f"cube_{truth}.exr"
             write_cube(path, Cube(reflectance, cube.mask, cube.header))
-            reconstruction = folder / f"reconstruction_noiseless_{truth}"
-            reconstruct_cube(path, reconstruction, load_fit_settings(None, model=MODELS["transport"]), device="cpu", force=True)
-            accuracy = accuracy_against_truth(folder / "session", reconstruction, path)
+            accuracy = _fit(folder, path, f"reconstruction_noiseless_{truth}", load_fit_settings(None, model=MODELS["transport"]))
             for name, p in accuracy["parameters"].items():
                 rows.append({"seed": seed, "truth": truth, "parameter": name, "median_error": round(p["median_error"], 4),
                              "fit_over_truth_median": round(p["fit_median"] / p["truth_median"], 4) if name != "beta_m" else "",
@@ -177,14 +189,8 @@ def test_each_models_floor_at_the_sessions_noise():
             g = torch.Generator().manual_seed(seed)
             path = folder / f"cube_floor_{model}.exr"
             write_cube(path, Cube(own + noise * torch.randn(own.shape, generator=g), cube.mask, cube.header))
-            reconstruction = folder / f"reconstruction_floor_{model}"
-            reconstruct_cube(path, reconstruction, load_fit_settings(None, model=overrides), device="cpu", force=True)
-            accuracy = accuracy_against_truth(folder / "session", reconstruction, path)
-            for name, p in accuracy["parameters"].items():
-                rows.append({"seed": seed, "model": model, "noise": noise, "parameter": name,
-                             "median_error": round(p["median_error"], 4),
-                             "fit_over_truth_median": round(p["fit_median"] / p["truth_median"], 4) if name != "beta_m" else "",
-                             "residual_rms": round(accuracy["residual_rms"], 5)})
+            accuracy = _fit(folder, path, f"reconstruction_floor_{model}", load_fit_settings(None, model=overrides))
+            rows += _map_rows(accuracy, {"seed": seed, "model": model, "noise": noise})
             print(seed, model, {n: round(p["median_error"], 3) for n, p in accuracy["parameters"].items()}, round(accuracy["residual_rms"], 5))
     write_csv(_csv("transport_session_floor.csv"), rows, f"seeds {SEEDS}, white noise {noise}, each model on its own render")
     assert all(r["median_error"] >= 0 for r in rows)
@@ -203,14 +209,9 @@ def test_dermal_blood_grid_on_transport_sessions():
         cube = folder / "calibrated" / CUBE_NAME
         for model, overrides in MODELS.items():
             for cell in cells:
-                reconstruction = folder / f"reconstruction_grid_{model}_{cell:g}"
-                reconstruct_cube(cube, reconstruction, load_fit_settings(None, model=overrides, map_cell_mm={"C_hd": cell}), device="cpu", force=True)
-                accuracy = accuracy_against_truth(folder / "session", reconstruction, cube)
-                for name, p in accuracy["parameters"].items():
-                    rows.append({"seed": seed, "model": model, "C_hd_cell_mm": cell, "parameter": name,
-                                 "median_error": round(p["median_error"], 4),
-                                 "fit_over_truth_median": round(p["fit_median"] / p["truth_median"], 4) if name != "beta_m" else "",
-                                 "residual_rms": round(accuracy["residual_rms"], 5)})
+                settings = load_fit_settings(None, model=overrides, map_cell_mm={"C_hd": cell})
+                accuracy = _fit(folder, cube, f"reconstruction_grid_{model}_{cell:g}", settings)
+                rows += _map_rows(accuracy, {"seed": seed, "model": model, "C_hd_cell_mm": cell})
                 print(seed, model, cell, {n: round(p["median_error"], 3) for n, p in accuracy["parameters"].items()})
     write_csv(_csv("transport_session_grid.csv"), rows, f"seeds {SEEDS}, C_hd on nodes of {cells} mm, each model")
     assert all(r["median_error"] >= 0 for r in rows)
