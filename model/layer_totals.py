@@ -31,6 +31,12 @@ over Table 2, against 2.2% treating all of T⁺ as Lambertian: docs/transport.md
 step between the layers (1.40 over 1.38, total internal reflection beyond 80°) is added as a thin
 Fresnel interface with hemispherical reflectances from either side, by the scalar adding rule.
 
+A third table, ``transport_handover.csv``, holds the *hand-over factor* κ(x₁, y₁, x₂): Eq. 7's
+series hands light between the layers as if it were Lambertian, and κ on R₂⁺ makes it give the two
+layers' total as adding-doubling stacks them angle by angle (``handover_factor``; the setting
+``handover: angular``). With it the model is within 0.08% of the adding-doubling stack on Table 2
+(400–700 nm), against +0.52% without (docs/transport.md, "Homogeneous skin").
+
 Shapes: coefficients broadcast to ``(...)``; results ``(...)``. Lookups are Catmull-Rom cubic in
 (x, y), differentiable (C¹) with respect to σa and σs′.
 """
@@ -66,6 +72,9 @@ __all__ = [
     "combine",
     "diffuse_interface_reflectance",
     "half_space_totals",
+    "handover_factor",
+    "handover_grid",
+    "handover_on_grid",
     "slab_totals",
 ]
 
@@ -83,7 +92,15 @@ HALF_SPACE_OPTICAL_THICKNESS = 1e5
 #: Values are stored as logs; totals below this count as zero (a thick dark slab's T).
 _FLOOR = 1e-280
 
+#: The hand-over table's grid: the same axes, coarser (the factor is within 0.85–1.01 and smooth in all three).
+HANDOVER_X_STEP, HANDOVER_Y_STEP = 0.25, 0.1
+#: Up to this many values of the epidermis's σs′ (one a band, as a rule), κ is read in y once per value.
+_HANDOVER_Y_SLICES = 4096
+#: Where the light handed between the layers (T⁺ R_d T⁻) is below this, κ is set to 1: it changes nothing.
+HANDOVER_NEGLIGIBLE = 1e-9
+
 SLAB_FILE, HALF_SPACE_FILE = "transport_slab_totals.csv", "transport_half_space_totals.csv"
+HANDOVER_FILE = "transport_handover.csv"
 SLAB_COLUMNS = ("R_plus", "T_plus_diffuse", "R_minus", "T_minus")
 HALF_SPACE_COLUMNS = ("R_collimated", "R_diffuse")
 
@@ -125,6 +142,7 @@ def _axis(lo: float, hi: float, step: float) -> np.ndarray:
 
 
 X_GRID, Y_GRID = _axis(X_MIN, X_MAX, X_STEP), _axis(Y_MIN, Y_MAX, Y_STEP)
+HANDOVER_X_GRID, HANDOVER_Y_GRID = _axis(X_MIN, X_MAX, HANDOVER_X_STEP), _axis(Y_MIN, Y_MAX, HANDOVER_Y_STEP)
 
 
 # -- reading ------------------------------------------------------------------------------------
@@ -168,10 +186,27 @@ def _tables() -> dict:
 
 @functools.lru_cache(maxsize=None)
 def tables_digest() -> str:
-    """A short hash of both data files (part of the Gaussian tables' cache key)."""
+    """A short hash of the totals' data files (part of the Gaussian tables' cache key; the hand-over
+    table is not: the Gaussian tables do not hold it)."""
     data = files("skinlayers.model").joinpath("data")
     text = "".join(data.joinpath(name).read_text() for name in (SLAB_FILE, HALF_SPACE_FILE))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+@functools.lru_cache(maxsize=None)
+def _handover_table() -> torch.Tensor:
+    """The shipped hand-over factors κ as float64 ``(X, Y, X)`` over (x₁, y₁, x₂)."""
+    rows, header, notes = read_table(HANDOVER_FILE)
+    if header != ["x_epidermis", "y_epidermis", "x_dermis", "handover"]:
+        raise ValueError(f"{HANDOVER_FILE}: unexpected columns {header}")
+    nx, ny = HANDOVER_X_GRID.size, HANDOVER_Y_GRID.size
+    if rows.shape[0] != nx * ny * nx or not np.allclose(rows[:, 0].reshape(nx, ny, nx)[:, 0, 0], HANDOVER_X_GRID) \
+            or not np.allclose(rows[:, 1].reshape(nx, ny, nx)[0, :, 0], HANDOVER_Y_GRID) \
+            or not np.allclose(rows[:, 2].reshape(nx, ny, nx)[0, 0], HANDOVER_X_GRID):
+        raise ValueError(f"{HANDOVER_FILE}: the grid is not the one this module reads")
+    if not any(line.startswith(f"# indices: n_layer {_tables()['n_layer']} n_above {_tables()['n_above']}") for line in notes):
+        raise ValueError(f"{HANDOVER_FILE}: made for other indices than {SLAB_FILE}; regenerate both")
+    return torch.from_numpy(rows[:, 3].reshape(nx, ny, nx).copy())
 
 
 def table_notes() -> tuple[str, ...]:
@@ -238,6 +273,78 @@ def half_space_totals(sigma_a_per_mm, sigma_s_prime_per_mm) -> HalfSpaceTotals:
     return HalfSpaceTotals(r_c, r_d)
 
 
+def handover_factor(sigma_a_epidermis, sigma_s_prime_epidermis, thickness_mm: float, sigma_a_dermis,
+                    sigma_s_prime_dermis) -> torch.Tensor:
+    """κ: the factor on the dermis's Lambertian reflectance R₂⁺ that makes Eq. 7's scalar series give the
+    two layers' transport total, ``(...)`` (shapes broadcast; Catmull-Rom in x₁, y₁, x₂, C¹).
+
+    The series hands light between the layers as if it were Lambertian each way. It is not: the
+    epidermis's scattered transmission leans towards grazing angles, where the dermis returns more and
+    the epidermis passes less back out. Adding-doubling stacks the layers angle by angle (32 streams);
+    κ is what the scalar hand-over would need for R₂⁺ to give that stack's total, from the same
+    tables' layer totals: R₁₂ = R₁⁺ + T₁⁺ κR₂⁺ T₁⁻ / (1 − R₁⁻ κR₂⁺). It is 0.95–1.0 for skin (the
+    scalar series is 0.3–1% too bright in the green on homogeneous skin: docs/transport.md).
+    """
+    sa1, ss1, sa2, ss2 = (torch.as_tensor(v) for v in (sigma_a_epidermis, sigma_s_prime_epidermis, sigma_a_dermis,
+                                                        sigma_s_prime_dermis))
+    shape = torch.broadcast_shapes(sa1.shape, ss1.shape, sa2.shape, ss2.shape)
+    table = _handover_table().to(device=sa1.device, dtype=torch.result_type(sa1, ss1))
+    nx, ny = HANDOVER_X_GRID.size, HANDOVER_Y_GRID.size
+    # y first, on the epidermis's scattering as given (usually one value a band): then 16 points per
+    # element, not 64 (the time and memory of a point fit's every step)
+    if ss1.numel() > _HANDOVER_Y_SLICES:  # scattering per element: all 64 neighbours of each
+        return _handover_3d(table, *(v.expand(shape) for v in (sa1, ss1, sa2, ss2)), thickness_mm)
+    iy, wy = _position(torch.log10(ss1 * thickness_mm), Y_MIN, HANDOVER_Y_STEP, ny)
+    slices = (table.permute(1, 0, 2).index_select(0, iy.reshape(-1)).reshape(*iy.shape, nx, nx)
+              * wy[..., None, None]).sum(-3)  # (*y, X, X)
+    slot = torch.arange(max(ss1.numel(), 1), device=sa1.device).reshape(ss1.shape).expand(shape)
+    i1, w1 = _position(_x(sa1.expand(shape), ss1.expand(shape)), X_MIN, HANDOVER_X_STEP, nx)
+    i2, w2 = _position(_x(sa2.expand(shape), ss2.expand(shape)), X_MIN, HANDOVER_X_STEP, nx)
+    index = (slot[..., None, None] * nx + i1[..., :, None]) * nx + i2[..., None, :]
+    values = slices.reshape(-1).index_select(0, index.reshape(-1)).reshape(index.shape)
+    return (values * (w1[..., :, None] * w2[..., None, :])).sum((-2, -1))
+
+
+def _handover_3d(table: torch.Tensor, sa1, ss1, sa2, ss2, thickness_mm: float) -> torch.Tensor:
+    """``handover_factor`` element by element: Catmull-Rom over the 4 × 4 × 4 neighbours."""
+    nx, ny = HANDOVER_X_GRID.size, HANDOVER_Y_GRID.size
+    i1, w1 = _position(_x(sa1, ss1), X_MIN, HANDOVER_X_STEP, nx)
+    iy, wy = _position(torch.log10(ss1 * thickness_mm), Y_MIN, HANDOVER_Y_STEP, ny)
+    i2, w2 = _position(_x(sa2, ss2), X_MIN, HANDOVER_X_STEP, nx)
+    index = (i1[..., :, None, None] * ny + iy[..., None, :, None]) * nx + i2[..., None, None, :]
+    weights = w1[..., :, None, None] * wy[..., None, :, None] * w2[..., None, None, :]
+    values = table.reshape(-1).index_select(0, index.reshape(-1)).reshape(index.shape)
+    return (values * weights).sum((-3, -2, -1))
+
+
+def handover_grid(sigma_a_grid_per_mm: torch.Tensor, sigma_s_prime_epidermis: torch.Tensor, thickness_mm: float,
+                  sigma_s_prime_dermis: torch.Tensor) -> torch.Tensor:
+    """κ on a σa grid ``(S,)`` for each band's scattering ``(L,)``: ``(L, S, S)`` [band, σa epidermis,
+    σa dermis] — what the renderer and the per-pixel fits interpolate (``handover_on_grid``): with the
+    scattering fixed per band, κ varies per pixel with the two absorptions alone."""
+    grid = torch.as_tensor(sigma_a_grid_per_mm, dtype=torch.float64)
+    s1 = torch.as_tensor(sigma_s_prime_epidermis, dtype=torch.float64).reshape(-1)
+    s2 = torch.as_tensor(sigma_s_prime_dermis, dtype=torch.float64).reshape(-1)
+    with torch.no_grad():
+        return torch.stack([handover_factor(grid[:, None], s1[j], thickness_mm, grid[None, :], s2[j])
+                            for j in range(s1.numel())])
+
+
+def handover_on_grid(grid: torch.Tensor, index_epidermis: torch.Tensor, frac_epidermis: torch.Tensor,
+                     index_dermis: torch.Tensor, frac_dermis: torch.Tensor) -> torch.Tensor:
+    """``handover_grid``'s ``(L, S, S)`` at table positions: flat ``index`` = band·S + i₀ and ``frac`` of
+    each layer's σa (the same positions the Gaussian weights are looked up at, linear in log σa),
+    bilinear; any shape. The gradient flows through the fractions."""
+    n = grid.shape[1]
+    flat = grid.reshape(-1).to(frac_epidermis)
+    base = index_epidermis * n + index_dermis % n
+    k00, k01 = flat[base], flat[base + 1]
+    k10, k11 = flat[base + n], flat[base + n + 1]
+    low = k00 + frac_dermis * (k01 - k00)
+    high = k10 + frac_dermis * (k11 - k10)
+    return low + frac_epidermis * (high - low)
+
+
 @functools.lru_cache(maxsize=64)
 def diffuse_interface_reflectance(n_from: float, n_to: float, points: int = 400) -> float:
     """Hemispherical reflectance 2∫F(μ)μ dμ of Lambertian light in index ``n_from`` meeting ``n_to``
@@ -297,11 +404,19 @@ def combine(slab: SlabTotals, half: HalfSpaceTotals, n_epidermis: float, n_dermi
 
 
 def layer_totals(sigma_a_epidermis, sigma_s_prime_epidermis, thickness_mm: float, sigma_a_dermis,
-                 sigma_s_prime_dermis, n_above: float, n_epidermis: float, n_dermis: float) -> LayerTotals:
-    """``combine`` of the slab and half-space tables at these coefficients (indices checked)."""
+                 sigma_s_prime_dermis, n_above: float, n_epidermis: float, n_dermis: float,
+                 handover: str = "lambertian") -> LayerTotals:
+    """``combine`` of the slab and half-space tables at these coefficients (indices checked); with
+    ``handover="angular"`` R₂⁺ carries the hand-over factor κ (``handover_factor``)."""
     check_indices(n_above, n_epidermis)
-    return combine(slab_totals(sigma_a_epidermis, sigma_s_prime_epidermis, thickness_mm),
-                   half_space_totals(sigma_a_dermis, sigma_s_prime_dermis), n_epidermis, n_dermis)
+    totals = combine(slab_totals(sigma_a_epidermis, sigma_s_prime_epidermis, thickness_mm),
+                     half_space_totals(sigma_a_dermis, sigma_s_prime_dermis), n_epidermis, n_dermis)
+    if handover == "lambertian":
+        return totals
+    if handover != "angular":
+        raise ValueError(f"handover must be 'angular' or 'lambertian', got {handover!r}")
+    kappa = handover_factor(sigma_a_epidermis, sigma_s_prime_epidermis, thickness_mm, sigma_a_dermis, sigma_s_prime_dermis)
+    return totals._replace(R2_plus=totals.R2_plus * kappa)
 
 
 class CollimatedPart(NamedTuple):
@@ -366,8 +481,92 @@ def adding_doubling_half_space(albedo: float, n_layer: float = TABLE_N_LAYER) ->
     return float(w @ r[:, -1]), float(w @ r @ w)
 
 
+def _slab_under_boundary(albedo: float, optical_thickness: float, n_layer: float, n_above: float):
+    """The slab's matrices with the boundary above it (both directions) and the quadrature's sample."""
+    from iadpython.combine import add_slide_above
+    from iadpython.start import boundary_layer
+
+    sample, r, t = _layer_matrices(albedo, optical_thickness, n_layer, n_above)
+    r01, r10, t01, t10 = boundary_layer(sample, top=True)
+    return sample, add_slide_above(sample, r01, r10, t01, t10, r, r, t, t)
+
+
+def _half_space(albedo: float, n_layer: float, n_above: float):
+    """The half-space's matrices (r, t) on the slab's quadrature, and its R_c and R_d."""
+    sample, r, t = _layer_matrices(albedo, HALF_SPACE_OPTICAL_THICKNESS, n_layer, n_above)
+    w = sample.twonuw
+    return r, t, float(w @ r[:, -1]), float(w @ r @ w)
+
+
+def _stack_total(sample, slab_under_boundary, half_space, n_layer: float, n_above: float) -> float:
+    """R of the slab (under its boundary) on the half-space, added angle by angle: normal collimated
+    light, per unit power entering, specular excluded."""
+    from iadpython.combine import add_layers
+
+    r02, r20, t02, t20 = slab_under_boundary
+    r, t = half_space[:2]
+    r03, _, _, _ = add_layers(sample, r02, r20, t02, t20, r, r, t, t)
+    w = sample.twonuw
+    k = int(np.min(np.where(sample.nu > sample.nu_c())))
+    specular = ((n_layer - n_above) / (n_layer + n_above)) ** 2
+    return (float(w[k:] @ r03[k:, -1]) - specular) / (1.0 - specular)
+
+
+def _scalar_handover(stack: float, slab: tuple[float, float, float, float], optical_thickness: float, half_space) -> float:
+    """κ from the stack's total and the layers' own: R = R⁺ + T⁺ κR_d T⁻ / (1 − R⁻ κR_d) solved for κ."""
+    r_plus, t_diffuse, r_minus, t_minus = slab
+    r_c, r_d = half_space[2], half_space[3]
+    t_plus = t_diffuse + (r_c / r_d) * math.exp(-optical_thickness)
+    if t_plus * t_minus * r_d < HANDOVER_NEGLIGIBLE:
+        return 1.0  # the series carries nothing (an opaque epidermis or a black dermis): any κ will do
+    rest = stack - r_plus
+    return rest / (r_d * (t_plus * t_minus + rest * r_minus))
+
+
+def _slab_parts(x_epidermis: float, y_epidermis: float, n_layer: float, n_above: float):
+    ratio = 10.0**x_epidermis
+    albedo, tau = 1.0 / (1.0 + ratio), (10.0**y_epidermis) * (1.0 + ratio)
+    sample, under = _slab_under_boundary(albedo, tau, n_layer, n_above)
+    return sample, under, adding_doubling_slab(albedo, tau, n_layer, n_above), tau
+
+
+def exact_handover(x_epidermis: float, y_epidermis: float, x_dermis: float, n_layer: float = TABLE_N_LAYER,
+                   n_above: float = TABLE_N_ABOVE) -> float:
+    """κ at one point from adding-doubling alone: the stack's total and each layer's (not the tables')."""
+    sample, under, slab, tau = _slab_parts(x_epidermis, y_epidermis, n_layer, n_above)
+    half = _half_space(1.0 / (1.0 + 10.0**x_dermis), n_layer, n_above)
+    return _scalar_handover(_stack_total(sample, under, half, n_layer, n_above), slab, tau, half)
+
+
+def build_handover(folder: Path, n_layer: float = TABLE_N_LAYER, n_above: float = TABLE_N_ABOVE) -> None:
+    """Compute the hand-over factors κ(x₁, y₁, x₂) by adding-doubling into ``folder``."""
+    import iadpython
+
+    halves = {float(x2): _half_space(1.0 / (1.0 + 10.0**x2), n_layer, n_above) for x2 in HANDOVER_X_GRID}
+    with (folder / HANDOVER_FILE).open("w") as f:
+        f.write(
+            f"# indices: n_layer {n_layer} n_above {n_above}\n"
+            "# The layers' hand-over factor kappa: with the slab's and the half-space's transport totals (R+, T+ = T_diffuse\n"
+            "#   + (R_c / R_d) T_c, R-, T-, R_d), R = R+ + T+ kappa R_d T- / (1 - R- kappa R_d) is the total R of the slab\n"
+            "#   (index n_layer under n_above) on a half-space of the same index, stacked angle by angle by adding-doubling.\n"
+            "# x = log10(sigma_a / sigma_s') of each layer, y = log10(sigma_s' * thickness) of the slab; kappa dimensionless.\n"
+            f"# Computed by this project (skinlayers.model.layer_totals.build_handover) with iadpython {iadpython.__version__},\n"
+            f"#   {QUAD_POINTS} quadrature points, isotropic scattering (g = 0) with sigma_s = sigma_s'.\n"
+            "# Regenerate: python -m skinlayers.model.layer_totals (needs the test extra: iadpython).\n"
+        )
+        f.write("x_epidermis,y_epidermis,x_dermis,handover\n")
+        for x1 in HANDOVER_X_GRID:
+            for y1 in HANDOVER_Y_GRID:
+                sample, under, slab, tau = _slab_parts(float(x1), float(y1), n_layer, n_above)
+                for x2 in HANDOVER_X_GRID:
+                    half = halves[float(x2)]
+                    kappa = _scalar_handover(_stack_total(sample, under, half, n_layer, n_above), slab, tau, half)
+                    f.write(f"{x1:.2f},{y1:.2f},{x2:.2f},{kappa:.8f}\n")
+    _handover_table.cache_clear()
+
+
 def build(folder: Path, n_layer: float = TABLE_N_LAYER, n_above: float = TABLE_N_ABOVE) -> None:
-    """Compute both tables by adding-doubling and write them into ``folder`` (the package's data)."""
+    """Compute the three tables by adding-doubling and write them into ``folder`` (the package's data)."""
     import iadpython
 
     start = time.perf_counter()
@@ -406,11 +605,13 @@ def build(folder: Path, n_layer: float = TABLE_N_LAYER, n_above: float = TABLE_N
             f.write(f"{x:.2f}," + ",".join(f"{v:.10e}" for v in values) + "\n")
     _tables.cache_clear()
     tables_digest.cache_clear()
-    print(f"wrote {folder / SLAB_FILE} and {folder / HALF_SPACE_FILE} in {time.perf_counter() - start:.0f} s")
+    build_handover(folder, n_layer, n_above)
+    print(f"wrote {folder / SLAB_FILE}, {folder / HALF_SPACE_FILE} and {folder / HANDOVER_FILE} "
+          f"in {time.perf_counter() - start:.0f} s")
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="Regenerate the transport layer-total tables (adding-doubling).")
+    parser = argparse.ArgumentParser(description="Regenerate the transport layer-total and hand-over tables (adding-doubling).")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "data")
     parser.add_argument("--n-layer", type=float, default=TABLE_N_LAYER)
     parser.add_argument("--n-above", type=float, default=TABLE_N_ABOVE)

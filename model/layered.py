@@ -10,7 +10,10 @@ at every frequency k; at k = 0 it combines the plane integrals (totals). The lay
 either from the exact multipole (closed form, all dipole pairs: ``method="exact"``) or from the
 Gaussian tables (``method="tables"``), so each checks the other. With ``profiles: transport`` the
 "exact" layers are adding-doubling's totals (``layer_totals``) with the Monte Carlo's tabulated shapes
-(``layer_shapes``), which the Gaussian tables are fitted to.
+(``layer_shapes``), which the Gaussian tables are fitted to, and (``handover: angular``) R₂⁺ carries
+the factor κ that makes the scalar combination give the layers' total as adding-doubling stacks them
+angle by angle (``layer_totals.handover_factor``; the same at every k: the correction is to the
+light's angles, not to where it goes).
 
 Shapes: parameters ``(...)``, wavelengths ``(L,)`` → spectra ``(..., L)``; with frequencies ``(N,)``
 → ``(..., L, N)``.
@@ -25,7 +28,7 @@ import torch
 
 from .gaussians import gaussian_sum_hankel
 from .layer_shapes import shape_transforms
-from .layer_totals import collimated_transmission, layer_totals
+from .layer_totals import collimated_transmission, handover_grid, handover_on_grid, layer_totals
 from .params import LayerAbsorption, SkinParams, layer_absorption
 from .profiles import multipole_hankel, multipole_totals
 from .radiometry import entry_transmittance
@@ -73,6 +76,7 @@ class SkinModel:
         self.settings = settings or ModelSettings()
         self.cache_dir = cache_dir
         self._tables: dict[tuple[float, ...], ProfileTables] = {}
+        self._handover: dict[tuple[float, ...], torch.Tensor] = {}
 
     # -- inputs --------------------------------------------------------------------------------
     def spectra(self, wavelength_nm: torch.Tensor) -> ChromophoreSpectra:
@@ -91,6 +95,18 @@ class SkinModel:
         if key not in self._tables:
             self._tables[key] = load_profile_tables(w, self.settings, self.cache_dir, progress)
         return self._tables[key]
+
+    def handover_grid(self, wavelength_nm: torch.Tensor) -> torch.Tensor:
+        """The hand-over factor κ on the tables' σa grid, ``(L, S, S)`` float64 (``handover: angular``
+        with ``profiles: transport``; ``layer_totals.handover_grid``), made once per set of bands."""
+        w = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
+        key = tuple(round(float(x), 6) for x in w)
+        if key not in self._handover:
+            spectra = self.spectra(w)
+            self._handover[key] = handover_grid(
+                self.tables(w).sigma_a_per_mm, spectra.scattering_epidermis, self.settings.optics.epidermis_thickness_mm,
+                spectra.scattering_dermis)
+        return self._handover[key]
 
     def _etas(self) -> tuple[float, float, float]:
         o = self.settings.optics
@@ -123,7 +139,8 @@ class SkinModel:
         d = o.epidermis_thickness_mm
         if method == "exact" and transport:
             # transport: adding-doubling's totals, the Monte Carlo's shapes (model/layer_shapes.py)
-            tt = layer_totals(ab.epidermis, s_epi, d, ab.dermis, s_derm, o.n_above, o.n_epidermis, o.n_dermis)
+            tt = layer_totals(ab.epidermis, s_epi, d, ab.dermis, s_derm, o.n_above, o.n_epidermis, o.n_dermis,
+                              self.settings.handover)
             targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)
             if k_per_mm is None:
                 epi, r2 = list(targets), tt.R2_plus
@@ -155,9 +172,21 @@ class SkinModel:
             if transport:
                 epi[1] = epi[1] + self._collimated(collimated_transmission(ab.epidermis, s_epi, d, ab.dermis, s_derm),
                                                    k_per_mm)
+                if self.settings.handover == "angular":
+                    kappa = self._handover_at(tab, wavelength_nm, ab.epidermis, ab.dermis)
+                    r2 = r2 * (kappa if k_per_mm is None else kappa[..., None])
         if k_per_mm is not None:
             attenuation = attenuation[..., None]
         return LayerTransforms(epi[0], epi[1], epi[2], epi[3], r2, attenuation)
+
+    def _handover_at(self, tab: ProfileTables, wavelength_nm, sa_epidermis, sa_dermis) -> torch.Tensor:
+        """κ ``(..., L)`` from the grid at the tables' positions of both layers' σa (as the renderer)."""
+        n = tab.sigma_a_per_mm.numel()
+        band = torch.arange(sa_epidermis.shape[-1], device=sa_epidermis.device) * n
+        t1, i1 = tab._position(sa_epidermis, sa_epidermis.shape[-1])
+        t2, i2 = tab._position(sa_dermis, sa_dermis.shape[-1])
+        grid = self.handover_grid(wavelength_nm).to(sa_epidermis.device)
+        return handover_on_grid(grid, band + i1, t1 - i1.to(t1), band + i2, t2 - i2.to(t2))
 
     @staticmethod
     def _collimated(tt, k_per_mm) -> torch.Tensor:

@@ -10,7 +10,10 @@ the gather operator 𝒢_P[f](x) = Σ_k w_k^P(x) (f ∗ G_k)(x) (profile of the 
 with A = exp(-P) the thin interface layer (17.5% of the epidermal melanin plus any user absorbance).
 With ``profiles: transport`` the T₁⁺ table holds the epidermis's scattered transmittance only and
 U_0 = A·(𝒢_{T1+}[Φ] + q T_c Φ): the unscattered beam T_c = exp(-(σa + σs′) d) goes straight down, and
-q = R_c / R_d turns the dermis's Lambertian response into its collimated one (model/layer_totals.py).
+q = R_c / R_d turns the dermis's Lambertian response into its collimated one (model/layer_totals.py);
+with ``handover: angular`` each V_n also carries the hand-over factor κ of its exit pixel (V_n =
+A·κ·𝒢_{R2+}[U_n]), which makes the scalar series give the layers' total as adding-doubling stacks
+them angle by angle.
 Φ is the irradiance that entered (F_t(θ_i) E); the series stops when the light left in it falls below
 ``series_tolerance``. All bands and batch items are blurred together; each gather's backward pass
 recomputes its blur stack instead of storing it (``gather.py``).
@@ -31,7 +34,7 @@ from ..formats.resources import require_memory
 from .blur import BlurPlan, blur_stack
 from .gather import ColumnLookups, columns, gather, lookup, total
 from .illumination import Light
-from .layer_totals import collimated_transmission
+from .layer_totals import collimated_transmission, handover_on_grid
 from .layered import SkinModel
 from .maps import SkinMaps
 from .radiometry import entry_transmittance, exit_factor
@@ -125,7 +128,11 @@ class SkinRenderer:
         derm = lookup(tables.sigma_a_per_mm, sa_derm)
         cols = {p: columns(tables, "epidermis", p, plan) for p in EPIDERMIS_PROFILES}
         cols["R2_plus"] = columns(tables, "dermis", "R_plus", plan)
-        terms = series_terms or self._series_terms(cols, epi, derm, attenuation, b, wl.numel())
+        # the dermis's answer, per exit pixel: through the interface, times the hand-over factor κ
+        # (transport; κ at the entry pixel or split between both draws features within 1% of this)
+        back = attenuation * handover_on_grid(self.model.handover_grid(wl).to(device), epi.index, epi.frac,
+                                              derm.index, derm.frac) if self._angular else attenuation
+        terms = series_terms or self._series_terms(cols, epi, derm, attenuation * back, b, wl.numel())
         if rs.coupling == "segment":
             at = self._cached_lookups(
                 cols, _column_lookups(tables.sigma_a_per_mm, sa_epi, plan, rs, rs.coupling_scale_epidermis),
@@ -150,15 +157,15 @@ class SkinRenderer:
         u = attenuation * t1
         for n in range(terms):
             (r2,) = g(u, [(cols["R2_plus"], at["R2_plus"])])
-            v = attenuation * r2
+            v = back * r2
             if n + 1 < terms:
                 t_out, r1 = g(v, [(cols["T_minus"], at["T_minus"]), (cols["R_minus"], at["R_minus"])])
                 u = attenuation * r1
             else:
                 if rs.series_closure:
-                    # the rest of the series, Σ_{k≥1} V_{n+k} ≈ V_n ρ/(1-ρ) with ρ = A² R₁⁻ R₂⁺ per pixel:
+                    # the rest of the series, Σ_{k≥1} V_{n+k} ≈ V_n ρ/(1-ρ) with ρ = A² κ R₁⁻ R₂⁺ per pixel:
                     # exact for homogeneous skin under uniform light, and the rest holds little light
-                    rho = attenuation**2 * total(cols["R_minus"], epi) * total(cols["R2_plus"], derm)
+                    rho = attenuation * back * total(cols["R_minus"], epi) * total(cols["R2_plus"], derm)
                     v = v / (1.0 - rho)
                 (t_out,) = g(v, [(cols["T_minus"], at["T_minus"])])
             m = m + t_out
@@ -193,6 +200,10 @@ class SkinRenderer:
         return self._terms_for(ratio)
 
     # -- pieces ----------------------------------------------------------------------------------
+    @property
+    def _angular(self) -> bool:
+        return self.settings.profiles == "transport" and self.settings.handover == "angular"
+
     def _cached_lookups(self, cols, epi, derm, terms: int) -> dict:
         """Per profile, its lookup — with the dense weights computed once when the profile is gathered
         more than once and they fit in ``weight_cache_mb`` (most-used profiles first)."""
@@ -211,13 +222,14 @@ class SkinRenderer:
                 budget -= need
         return at
 
-    def _series_terms(self, cols, epi, derm, attenuation, batch, bands) -> int:
-        """Terms until the geometric tail (A² R₁⁻ R₂⁺ per bounce, worst pixel) holds < tolerance."""
+    def _series_terms(self, cols, epi, derm, round_trip, batch, bands) -> int:
+        """Terms until the geometric tail (A² κ R₁⁻ R₂⁺ per bounce, worst pixel; ``round_trip`` = A² κ)
+        holds < tolerance."""
         rs = self.settings.render
         with torch.no_grad():
             r1m = total(cols["R_minus"], epi)
             r2p = total(cols["R2_plus"], derm)
-            ratio = float((attenuation**2 * r1m * r2p).max().clamp(1e-12, 0.999))
+            ratio = float((round_trip * r1m * r2p).max().clamp(1e-12, 0.999))
         return self._terms_for(ratio)
 
     def _terms_for(self, ratio: float) -> int:

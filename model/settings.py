@@ -166,7 +166,7 @@ class RenderSettings(Strict):
         ),
     )
     coupling_scale: float = Field(
-        1.0, gt=0, le=16,
+        1.25, gt=0, le=16,  # refitted with the angular hand-over (the stripe: docs/transport.md)
         description="'segment', the dermis's profile: the segment's variance as a multiple of each Gaussian's (1: its own).",
     )
     coupling_scale_epidermis: float = Field(
@@ -244,6 +244,16 @@ class ModelSettings(Strict):
             "sessions rendered by transport, transport fits melanin and epidermal blood better and dermal "
             "blood worse, as it does on its own physics at that noise). "
             "Both against the Monte Carlo: docs/transport.md, \"A forward model that matches transport\"."
+        ),
+    )
+    handover: Literal["angular", "lambertian"] = Field(
+        "angular",
+        description=(
+            "With profiles 'transport': how the layers hand light to each other. 'angular': the dermis's "
+            "reflectance R₂⁺ times the factor κ that makes Eq. 7's scalar series give the two layers' total "
+            "as adding-doubling stacks them angle by angle (model/layer_totals.py, handover_factor); "
+            "'lambertian': Eq. 7 as DWRR08 has it, every hand-over Lambertian (0.3–1% too bright in the green "
+            "on homogeneous skin: docs/transport.md). Diffusion profiles always hand over as the paper does."
         ),
     )
     render_wavelengths_nm: list[float] = Field(

@@ -239,7 +239,7 @@ def _transport_weights(sigma_a: torch.Tensor, s_epi: torch.Tensor, s_derm: torch
                        variances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One wavelength's weights ``(4, S, K)`` and ``(1, S, K)``: Monte Carlo shapes, adding-doubling totals."""
     tt = layer_totals.layer_totals(sigma_a, s_epi, opt.epidermis_thickness_mm, sigma_a, s_derm,
-                                   opt.n_above, opt.n_epidermis, opt.n_dermis)
+                                   opt.n_above, opt.n_epidermis, opt.n_dermis, handover="lambertian")
     sa, se, sd = sigma_a.numpy(), float(s_epi), float(s_derm)
     slab = layer_shapes.slab_shapes(np.log10(sa / se), math.log10(se * opt.epidermis_thickness_mm))
     targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)

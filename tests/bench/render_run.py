@@ -38,12 +38,17 @@ def main(cfg: dict) -> dict:
     device = cfg.get("device", "cpu")
     render = RenderSettings(**cfg.get("render", {}))
     tables = TableSettings(**cfg.get("tables", {}))
-    renderer = SkinRenderer(ModelSettings(render=render, tables=tables, profiles=cfg.get("profiles", "transport")))
+    renderer = SkinRenderer(ModelSettings(render=render, tables=tables, profiles=cfg.get("profiles", "transport"),
+                                          handover=cfg.get("handover", "angular")))
     wl = torch.linspace(cfg.get("wl_lo", 420.0), cfg.get("wl_hi", 680.0), cfg["bands"], dtype=torch.float64)
     maps = example(cfg["size"], cfg["mm"], device)
     light = Light("window", size_mm=cfg["size"] * cfg["mm"], border_mm=cfg.get("border_mm", 10.0))
-    renderer.model.tables(wl)  # build or load tables outside the timing
     out = {}
+    renderer.model.tables(wl)  # build or load tables outside the timing
+    if renderer.settings.profiles == "transport" and renderer.settings.handover == "angular":
+        t = time.perf_counter()
+        renderer.model.handover_grid(wl)  # once per set of bands, like the tables
+        out["handover_grid_s"] = time.perf_counter() - t
     if cfg.get("backward"):
         maps = maps.replace(C_m=maps.C_m.clone().requires_grad_(), C_hd=maps.C_hd.clone().requires_grad_())
     if device == "cuda":

@@ -82,21 +82,22 @@ def test_fit_spectrum_nist():
 
 
 def test_fit_spectrum_nist_profiles():
-    """NIST's 100 forearms (400–700 nm) fitted with each profile choice (issue 15): the RMS residual and
+    """NIST's 100 forearms (400–700 nm) fitted with each profile choice (issue 15; transport with each
+    hand-over between the layers): the RMS residual and
     how many fits end with a parameter at a bound, with no scale, a free scale, and the specular
     reflection included (NIST's sphere geometry with the gloss kept). ``nist_profiles.csv``."""
     from skinlayers.model import PARAMETER_NAMES as NAMES
 
     data = read_spectra_csv(NIST).select(400, 700)
     rows = []
-    for profiles in ("diffusion", "transport"):
-        model = SkinModel(ModelSettings(profiles=profiles))
+    for profiles, handover in (("diffusion", "lambertian"), ("transport", "lambertian"), ("transport", "angular")):
+        model = SkinModel(ModelSettings(profiles=profiles, handover=handover))
         fit_spectra(data.reflectance[:2], data.wavelength_nm, model)  # warm-up and tables
         for kw in ({}, {"free_scale": True}, {"specular_included": True}):
             start = time.perf_counter()
             f = fit_spectra(data.reflectance, data.wavelength_nm, model, **kw)
             seconds = time.perf_counter() - start
-            row = {"profiles": profiles, "options": "+".join(kw) or "no scale", "seconds": round(seconds, 2),
+            row = {"profiles": profiles, "handover": handover, "options": "+".join(kw) or "no scale", "seconds": round(seconds, 2),
                    "median_rms_pct": round(100 * float(f.rms_residual.median()), 3),
                    "worst_rms_pct": round(100 * float(f.rms_residual.max()), 3),
                    "any_at_bound_pct": round(100 * sum(bool(b) for b in f.at_bound) / len(f.at_bound), 1)}

@@ -49,6 +49,8 @@ PLAIN = {"series_closure": False, "weight_cache_mb": 0, "series_tolerance": 1e-3
 FORWARD_MODELS = {
     "paper (diffusion, exit rule)": {"profiles": "diffusion", "render": {"coupling": "exit"}},
     "transport profiles, exit rule": {"profiles": "transport", "render": {"coupling": "exit"}},
+    "transport profiles, exit rule, Lambertian hand-over": {"profiles": "transport", "handover": "lambertian",
+                                                            "render": {"coupling": "exit"}},
     "transport profiles, segment coupling": {"profiles": "transport", "render": {"coupling": "segment"}},
 }
 
@@ -68,7 +70,7 @@ def test_forward_models_speed_and_memory():
         got = {name: [] for name in FORWARD_MODELS}
         for _ in range(rounds):
             for name, over in FORWARD_MODELS.items():
-                got[name].append(run({**base, "backward": True, "profiles": over["profiles"], "render": over["render"]}))
+                got[name].append(run({**base, "backward": True, **over}))
         paper = FORWARD_MODELS and got["paper (diffusion, exit rule)"]
         med = lambda runs, key: statistics.median(r[key] for r in runs)  # noqa: E731
         for name, runs in got.items():
@@ -77,7 +79,8 @@ def test_forward_models_speed_and_memory():
             rows.append({"case": case, "model": name, "rounds": rounds, "forward_s": round(fw, 2),
                          "forward_backward_s": round(fw + bw, 2), "forward_vs_paper": round(fw / p_fw, 2),
                          "forward_backward_vs_paper": round((fw + bw) / (p_fw + p_bw), 2),
-                         "peak_rss_mb": round(max(r["peak_rss_mb"] for r in runs)), "terms": runs[0]["terms"]})
+                         "peak_rss_mb": round(max(r["peak_rss_mb"] for r in runs)), "terms": runs[0]["terms"],
+                         "handover_grid_s": round(med(runs, "handover_grid_s"), 2) if "handover_grid_s" in runs[0] else ""})
     write_csv("forward_models.csv", rows, "medians; ratios against DWRR08's model measured in the same run")
     assert all(r["forward_s"] > 0 for r in rows)
 

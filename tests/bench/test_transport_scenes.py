@@ -60,6 +60,8 @@ RENDERERS = {
     "paper": {"profiles": "diffusion", "render": {"coupling": "exit"}},
     "transport profiles, exit rule": {"profiles": "transport", "render": {"coupling": "exit"}},
     "transport profiles, segment coupling": {"profiles": "transport", "render": {"coupling": "segment"}},
+    "transport profiles, segment coupling, Lambertian hand-over": {
+        "profiles": "transport", "handover": "lambertian", "render": {"coupling": "segment", "coupling_scale": 1.0}},
 }
 WIDTH_PX = 80
 

@@ -174,12 +174,15 @@ def test_what_the_fit_makes_of_the_truth_without_noise():
 def test_each_models_floor_at_the_sessions_noise():
     """What each model's fit gives on its *own* physics at the sessions' noise: the model's render of
     the truth maps (``profiles`` each way) plus white noise of ``SKINLAYERS_FLOOR_NOISE`` (default
-    0.004: the cube's 0.0036 and the Monte Carlo's 0.0015 together), fitted with the same model.
-    A map error here is the data's limit for that model, not a mismatch with transport. Writes
-    ``transport_session_floor.csv``."""
+    0.004: the cube's 0.0036 and the Monte Carlo's 0.0015 together), fitted with the same model
+    (dermal blood on nodes of ``SKINLAYERS_FLOOR_CHD_MM``, default the fit's). A map error here is the
+    data's limit for that model, not a mismatch with transport. Writes ``transport_session_floor.csv``
+    (``_<cell>mm`` added with a cell)."""
     from skinlayers.formats.cube import Cube, write_cube
 
     noise = float(os.environ.get("SKINLAYERS_FLOOR_NOISE", 0.004))
+    cell = os.environ.get("SKINLAYERS_FLOOR_CHD_MM")
+    grid = {"map_cell_mm": {"C_hd": float(cell)}} if cell else {}
     rows = []
     rig = _rig()
     for seed in SEEDS:
@@ -189,10 +192,11 @@ def test_each_models_floor_at_the_sessions_noise():
             g = torch.Generator().manual_seed(seed)
             path = folder / f"cube_floor_{model}.exr"
             write_cube(path, Cube(own + noise * torch.randn(own.shape, generator=g), cube.mask, cube.header))
-            accuracy = _fit(folder, path, f"reconstruction_floor_{model}", load_fit_settings(None, model=overrides))
-            rows += _map_rows(accuracy, {"seed": seed, "model": model, "noise": noise})
+            accuracy = _fit(folder, path, f"reconstruction_floor_{model}", load_fit_settings(None, model=overrides, **grid))
+            rows += _map_rows(accuracy, {"seed": seed, "model": model, "noise": noise, "C_hd_cell_mm": cell or "default"})
             print(seed, model, {n: round(p["median_error"], 3) for n, p in accuracy["parameters"].items()}, round(accuracy["residual_rms"], 5))
-    write_csv(_csv("transport_session_floor.csv"), rows, f"seeds {SEEDS}, white noise {noise}, each model on its own render")
+    name = "transport_session_floor.csv" if not cell else f"transport_session_floor_{float(cell):g}mm.csv"
+    write_csv(_csv(name), rows, f"seeds {SEEDS}, white noise {noise}, each model on its own render, C_hd nodes {cell or 'default'}")
     assert all(r["median_error"] >= 0 for r in rows)
 
 
