@@ -42,12 +42,12 @@ def test_the_window_on_homogeneous_skin_against_the_monte_carlo():
     centre, e = slice(n // 2 - 8, n // 2 + 8), MARGIN_PX
     regions = {"centre": (centre, centre), "inside_edge": (centre, slice(e, e + 3)), "outside_0.35_0.6mm": (centre, slice(e - 5, e - 3))}
     rows = []
-    for profiles in ("diffusion", "transport"):
-        model = SkinRenderer(ModelSettings(profiles=profiles)).render(
+    for profiles, handover in (("diffusion", "lambertian"), ("transport", "lambertian"), ("transport", "angular")):
+        model = SkinRenderer(ModelSettings(profiles=profiles, handover=handover)).render(
             maps.to(dtype=torch.float32), Light("window", size_mm=WINDOW_MM, border_mm=3.0), wl.float(), under_gel=True).exitance[0].double()
         ratio = model / mc.exitance[0]
         for j, band in enumerate(BANDS_NM):
-            row = {"preset": PRESET, "profiles": profiles, "band_nm": band}
+            row = {"preset": PRESET, "profiles": profiles, "handover": handover, "band_nm": band}
             for name, (ys, xs) in regions.items():
                 row[f"model_over_mc_{name}"] = round(float(ratio[j, ys, xs].mean()), 5)
             row["mc_relative_se_centre"] = round(float((mc.exitance_std_error[0, j] / mc.exitance[0, j])[centre, centre].mean()), 5)
