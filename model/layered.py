@@ -76,7 +76,7 @@ class SkinModel:
         self.settings = settings or ModelSettings()
         self.cache_dir = cache_dir
         self._tables: dict[tuple[float, ...], ProfileTables] = {}
-        self._handover: dict[tuple[float, ...], torch.Tensor] = {}
+        self._handover: dict[tuple, torch.Tensor] = {}
 
     # -- inputs --------------------------------------------------------------------------------
     def spectra(self, wavelength_nm: torch.Tensor) -> ChromophoreSpectra:
@@ -96,9 +96,10 @@ class SkinModel:
             self._tables[key] = load_profile_tables(w, self.settings, self.cache_dir, progress)
         return self._tables[key]
 
-    def handover_grid(self, wavelength_nm: torch.Tensor) -> torch.Tensor:
+    def handover_grid(self, wavelength_nm: torch.Tensor, device: torch.device | str | None = None) -> torch.Tensor:
         """The hand-over factor κ on the tables' σa grid, ``(L, S, S)`` float64 (``handover: angular``
-        with ``profiles: transport``; ``layer_totals.handover_grid``), made once per set of bands."""
+        with ``profiles: transport``; ``layer_totals.handover_grid``), made once per set of bands and
+        kept on each device it is asked for."""
         w = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
         key = tuple(round(float(x), 6) for x in w)
         if key not in self._handover:
@@ -106,7 +107,12 @@ class SkinModel:
             self._handover[key] = handover_grid(
                 self.tables(w).sigma_a_per_mm, spectra.scattering_epidermis, self.settings.optics.epidermis_thickness_mm,
                 spectra.scattering_dermis)
-        return self._handover[key]
+        if device is None or torch.device(device) == self._handover[key].device:
+            return self._handover[key]
+        where = (key, str(torch.device(device)))
+        if where not in self._handover:
+            self._handover[where] = self._handover[key].to(device)
+        return self._handover[where]
 
     def _etas(self) -> tuple[float, float, float]:
         o = self.settings.optics
@@ -185,7 +191,7 @@ class SkinModel:
         band = torch.arange(sa_epidermis.shape[-1], device=sa_epidermis.device) * n
         t1, i1 = tab._position(sa_epidermis, sa_epidermis.shape[-1])
         t2, i2 = tab._position(sa_dermis, sa_dermis.shape[-1])
-        grid = self.handover_grid(wavelength_nm).to(sa_epidermis.device)
+        grid = self.handover_grid(wavelength_nm, sa_epidermis.device)
         return handover_on_grid(grid, band + i1, t1 - i1.to(t1), band + i2, t2 - i2.to(t2))
 
     @staticmethod

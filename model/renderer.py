@@ -130,7 +130,7 @@ class SkinRenderer:
         cols["R2_plus"] = columns(tables, "dermis", "R_plus", plan)
         # the dermis's answer, per exit pixel: through the interface, times the hand-over factor κ
         # (transport; κ at the entry pixel or split between both draws features within 1% of this)
-        back = attenuation * handover_on_grid(self.model.handover_grid(wl).to(device), epi.index, epi.frac,
+        back = attenuation * handover_on_grid(self.model.handover_grid(wl, device), epi.index, epi.frac,
                                               derm.index, derm.frac) if self._angular else attenuation
         terms = series_terms or self._series_terms(cols, epi, derm, attenuation * back, b, wl.numel())
         if rs.coupling == "segment":
