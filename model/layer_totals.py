@@ -530,12 +530,12 @@ def _slab_parts(x_epidermis: float, y_epidermis: float, n_layer: float, n_above:
     return sample, under, adding_doubling_slab(albedo, tau, n_layer, n_above), tau
 
 
-def exact_handover(x_epidermis: float, y_epidermis: float, x_dermis: float, n_layer: float = TABLE_N_LAYER,
-                   n_above: float = TABLE_N_ABOVE) -> float:
-    """κ at one point from adding-doubling alone: the stack's total and each layer's (not the tables')."""
-    sample, under, slab, tau = _slab_parts(x_epidermis, y_epidermis, n_layer, n_above)
-    half = _half_space(1.0 / (1.0 + 10.0**x_dermis), n_layer, n_above)
-    return _scalar_handover(_stack_total(sample, under, half, n_layer, n_above), slab, tau, half)
+def adding_doubling_two_layers(x_epidermis: float, y_epidermis: float, x_dermis: float, n_layer: float = TABLE_N_LAYER,
+                               n_above: float = TABLE_N_ABOVE) -> float:
+    """The two layers' total R by adding-doubling alone (the slab under its boundary on the half-space,
+    angle by angle; the truth the hand-over table is made to match), at similarity coordinates."""
+    sample, under, _, _ = _slab_parts(x_epidermis, y_epidermis, n_layer, n_above)
+    return _stack_total(sample, under, _half_space(1.0 / (1.0 + 10.0**x_dermis), n_layer, n_above), n_layer, n_above)
 
 
 def build_handover(folder: Path, n_layer: float = TABLE_N_LAYER, n_above: float = TABLE_N_ABOVE) -> None:

@@ -187,12 +187,8 @@ class SkinModel:
 
     def _handover_at(self, tab: ProfileTables, wavelength_nm, sa_epidermis, sa_dermis) -> torch.Tensor:
         """κ ``(..., L)`` from the grid at the tables' positions of both layers' σa (as the renderer)."""
-        n = tab.sigma_a_per_mm.numel()
-        band = torch.arange(sa_epidermis.shape[-1], device=sa_epidermis.device) * n
-        t1, i1 = tab._position(sa_epidermis, sa_epidermis.shape[-1])
-        t2, i2 = tab._position(sa_dermis, sa_dermis.shape[-1])
         grid = self.handover_grid(wavelength_nm, sa_epidermis.device)
-        return handover_on_grid(grid, band + i1, t1 - i1.to(t1), band + i2, t2 - i2.to(t2))
+        return handover_on_grid(grid, *tab.flat_position(sa_epidermis), *tab.flat_position(sa_dermis))
 
     @staticmethod
     def _collimated(tt, k_per_mm) -> torch.Tensor:

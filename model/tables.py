@@ -152,6 +152,14 @@ class ProfileTables:
         i0 = torch.clamp(t.detach().floor().long(), 0, grid.numel() - 2)
         return t, i0
 
+    def flat_position(self, sigma_a_per_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """σa ``(..., L)`` → its flat sample index band·S + i₀ and fraction ``(..., L)``: the renderer's
+        ``gather.lookup`` convention, for tables of the bands × σa grid (the hand-over factor's)."""
+        bands = self.wavelength_nm.numel()
+        t, i0 = self._position(sigma_a_per_mm, bands)
+        flat = torch.arange(bands, device=i0.device) * self.sigma_a_per_mm.numel() + i0
+        return flat, t - i0.to(t)
+
     @staticmethod
     def _lerp(table: torch.Tensor, t: torch.Tensor, i0: torch.Tensor) -> torch.Tensor:
         """``table`` ``(L, S, K)`` at fractional sample positions ``t`` ``(..., L)`` → ``(..., L, K)``."""

@@ -131,9 +131,7 @@ def test_handover_table_between_its_nodes():
     worst = {"angular": 0.0, "lambertian": 0.0}
     s1, s2 = 6.0, 3.0
     for x1, y1, x2 in zip(rng.uniform(-3.0, 0.5, 12), rng.uniform(-0.2, 0.6, 12), rng.uniform(-3.5, 0.5, 12)):
-        sample, under, _, _ = lt._slab_parts(float(x1), float(y1), lt.TABLE_N_LAYER, lt.TABLE_N_ABOVE)
-        half = lt._half_space(1.0 / (1.0 + 10.0**x2), lt.TABLE_N_LAYER, lt.TABLE_N_ABOVE)
-        truth = lt._stack_total(sample, under, half, lt.TABLE_N_LAYER, lt.TABLE_N_ABOVE)
+        truth = lt.adding_doubling_two_layers(float(x1), float(y1), float(x2))
         for handover in worst:
             t = lt.layer_totals(_t(s1 * 10.0**x1), _t(s1), 10.0**y1 / s1, _t(s2 * 10.0**x2), _t(s2),
                                 1.0, lt.TABLE_N_LAYER, lt.TABLE_N_LAYER, handover)
