@@ -30,6 +30,7 @@ from ..formats.resources import require_memory
 from ..model.renderer import SkinRenderer, render_bytes
 from .checks import DataChecks, check_cube, flag_value
 from .gauss_newton import curvature_and_columns, level_step
+from .grid_choice import band_noise, choose_map_grids
 from .optimizers import METHODS, OptimResult
 from .problem import LevelProblem, RenderCounter
 from .schur import marginal_variance
@@ -70,7 +71,8 @@ class MapFit:
     ``band_fwhm_nm`` ``(L,)`` each band's filter width as fitted, ``band_fwhm_source`` where it came from;
     ``history``: (CPU s, loss, level) after every accepted step of every pass (a robust pass lowers its
     own, weighted loss); ``maps_at_bound``: each map on nodes that rests at a bound somewhere, with the
-    share of the loss pixels where it does (such a map flags no pixel: ``at_bound`` is a pixel's own maps)."""
+    share of the loss pixels where it does (such a map flags no pixel: ``at_bound`` is a pixel's own maps);
+    ``grid_choice``: with ``map_grids: auto``, what was considered and chosen (``grid_choice.GridChoice``)."""
 
     maps: SkinMaps
     scale: float
@@ -91,6 +93,7 @@ class MapFit:
     wall_s: float = 0.0
     history: list[tuple[float, float, int]] = field(default_factory=list)
     maps_at_bound: dict[str, float] = field(default_factory=dict)
+    grid_choice: dict | None = None
 
 
 def view_angle_of(cube: Cube, settings: FitSettings) -> tuple[float, str]:
@@ -151,13 +154,20 @@ def fit_cube(
     x = log_scale = None
     records: list[dict] = []
     history: list[tuple[float, float, int]] = []
-    result = problem = None
+    result = problem = choice = None
+    cells = settings.cells
     for i, level in enumerate(levels):
         problem = LevelProblem(renderer, level, wl, checks.bands_used, view_angle_deg=view, border_mm=settings.border_mm,
-                               band_fwhm_nm=fwhm, map_cell_mm=settings.cells, counter=counter)
+                               band_fwhm_nm=fwhm, map_cell_mm=cells, counter=counter)
         if x is None:
             say(FitEvent("start", i, len(levels), pixels=pixels))
             x = STARTS[settings.start](problem, dtype=dtype, device=dev)
+            if settings.map_grids == "auto":  # the grids from this cube's information, then the level re-made on them
+                noise = band_noise(target, checks.fit_mask.to(dev)) * (cube.mm_per_pixel / level.mm_per_pixel)  # 2×2 means halve σ
+                choice = choose_map_grids(problem, x, noise, cells, cube.mm_per_pixel)
+                cells = choice.cells_mm
+                problem = LevelProblem(renderer, level, wl, checks.bands_used, view_angle_deg=view, border_mm=settings.border_mm,
+                                       band_fwhm_nm=fwhm, map_cell_mm=cells, counter=counter)
             if not problem.layout.per_pixel:  # nodes from the per-pixel start's interquartile range:
                 # its noisy fits put many values at the start's bounds, from which the first steps
                 # are rejected (docs/reconstruct.md)
@@ -186,6 +196,7 @@ def fit_cube(
         **out, checks=checks, wavelength_nm=wl, view_angle_deg=view, view_angle_source=view_source, band_fwhm_nm=fwhm,
         band_fwhm_source=fwhm_source, levels=records,
         counter=counter, cpu_s=time.process_time() - cpu0, wall_s=time.perf_counter() - wall0, history=history,
+        grid_choice=choice.as_dict() if choice else None,
     )
 
 

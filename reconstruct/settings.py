@@ -82,6 +82,14 @@ class FitSettings(Strict):
             "None: the measured default for gn-hom (DEFAULT_MAP_CELL_MM), per pixel for gn, adam and paper-fd."
         ),
     )
+    map_grids: Literal["fixed", "auto"] = Field(
+        "fixed",
+        description=(
+            "fixed: map_cell_mm as given (or its default); auto: each map's spacing chosen on the cube at the coarsest "
+            "level, the candidate with the least Cramér–Rao variance + C_p bias² (reconstruct/grid_choice.py), "
+            "starting from map_cell_mm; the evidence goes into fit.json. gn-hom only."
+        ),
+    )
     robust_passes: int = Field(
         1, ge=0, le=5,
         description=(
@@ -155,6 +163,8 @@ class FitSettings(Strict):
                 raise ValueError(f"map_cell_mm: unknown map(s) {', '.join(sorted(unknown))}; the maps are {', '.join(DEFAULT_MAP_CELL_MM)}")
             if any(v < 0 for v in self.map_cell_mm.values()):
                 raise ValueError(f"map_cell_mm: a node spacing must be ≥ 0 mm (0: per pixel), got {self.map_cell_mm}")
+        if self.map_grids == "auto" and self.method in PER_PIXEL_METHODS:
+            raise ValueError(f"map_grids: auto chooses node grids, which method {self.method} does not fit (use gn-hom)")
         if self.coarse_maps and self.method in PER_PIXEL_METHODS:
             raise ValueError(
                 f"method {self.method} fits every map per pixel; map_cell_mm puts {', '.join(self.coarse_maps)} on nodes "
