@@ -156,18 +156,22 @@ def fit_cube(
     history: list[tuple[float, float, int]] = []
     result = problem = choice = None
     cells = settings.cells
+
+    def level_problem(level, cells: dict[str, float]) -> LevelProblem:
+        return LevelProblem(renderer, level, wl, checks.bands_used, view_angle_deg=view, border_mm=settings.border_mm,
+                            band_fwhm_nm=fwhm, map_cell_mm=cells, counter=counter)
+
     for i, level in enumerate(levels):
-        problem = LevelProblem(renderer, level, wl, checks.bands_used, view_angle_deg=view, border_mm=settings.border_mm,
-                               band_fwhm_nm=fwhm, map_cell_mm=cells, counter=counter)
+        problem = level_problem(level, cells)
         if x is None:
             say(FitEvent("start", i, len(levels), pixels=pixels))
             x = STARTS[settings.start](problem, dtype=dtype, device=dev)
             if settings.map_grids == "auto":  # the grids from this cube's information, then the level re-made on them
-                noise = band_noise(target, checks.fit_mask.to(dev)) * (cube.mm_per_pixel / level.mm_per_pixel)  # 2×2 means halve σ
+                # the cube's noise at this level: each 2×2 mean halves white noise's σ
+                noise = band_noise(target, checks.fit_mask.to(dev)) * (cube.mm_per_pixel / level.mm_per_pixel)
                 choice = choose_map_grids(problem, x, noise, cells, cube.mm_per_pixel)
                 cells = choice.cells_mm
-                problem = LevelProblem(renderer, level, wl, checks.bands_used, view_angle_deg=view, border_mm=settings.border_mm,
-                                       band_fwhm_nm=fwhm, map_cell_mm=cells, counter=counter)
+                problem = level_problem(level, cells)
             if not problem.layout.per_pixel:  # nodes from the per-pixel start's interquartile range:
                 # its noisy fits put many values at the start's bounds, from which the first steps
                 # are rejected (docs/reconstruct.md)
