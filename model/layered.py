@@ -77,6 +77,7 @@ class SkinModel:
         self.cache_dir = cache_dir
         self._tables: dict[tuple[float, ...], ProfileTables] = {}
         self._handover: dict[tuple, torch.Tensor] = {}
+        self._point: dict[tuple, object] = {}
 
     # -- inputs --------------------------------------------------------------------------------
     def spectra(self, wavelength_nm: torch.Tensor) -> ChromophoreSpectra:
@@ -95,6 +96,20 @@ class SkinModel:
         if key not in self._tables:
             self._tables[key] = load_profile_tables(w, self.settings, self.cache_dir, progress)
         return self._tables[key]
+
+    def point_tables(self, wavelength_nm: torch.Tensor, device: torch.device | str | None = None):
+        """The homogeneous model's totals tabulated at these bands for point fits
+        (``point_tables.PointTables``), made once per set of bands and kept on each device asked for."""
+        from .point_tables import PointTables  # it builds on this class
+
+        w = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
+        key = ("point", tuple(round(float(x), 6) for x in w), str(torch.device(device or "cpu")))
+        if key not in self._point:
+            home = ("point", key[1], "cpu")
+            if home not in self._point:
+                self._point[home] = PointTables.build(self, w)
+            self._point[key] = self._point[home].to(device)
+        return self._point[key]
 
     def handover_grid(self, wavelength_nm: torch.Tensor, device: torch.device | str | None = None) -> torch.Tensor:
         """The hand-over factor κ on the tables' σa grid, ``(L, S, S)`` float64 (``handover: angular``
@@ -133,11 +148,28 @@ class SkinModel:
         """
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-        o = self.settings.optics
         spectra = self.spectra(wavelength_nm)
         ab = self.absorption(params, spectra)
         absorbance = ab.interface_absorbance if extra_absorbance is None else ab.interface_absorbance + extra_absorbance
-        attenuation = torch.exp(-absorbance)
+        return self.transforms_at(ab.epidermis, ab.dermis, absorbance, wavelength_nm, k_per_mm, method, spectra)
+
+    def transforms_at(
+        self,
+        sigma_a_epidermis_per_mm: torch.Tensor,
+        sigma_a_dermis_per_mm: torch.Tensor,
+        interface_absorbance: torch.Tensor,
+        wavelength_nm: torch.Tensor,
+        k_per_mm: torch.Tensor | None = None,
+        method: str = "exact",
+        spectra: ChromophoreSpectra | None = None,
+    ) -> LayerTransforms:
+        """The layers' totals or transforms at given absorption, each ``(..., L)``: at one band they
+        depend on the two layers' σa and the interface absorbance alone (scattering, thickness and
+        indices are the settings'), which is what lets ``point_tables`` tabulate them."""
+        o = self.settings.optics
+        spectra = spectra if spectra is not None else self.spectra(wavelength_nm)
+        ab = LayerAbsorption(sigma_a_epidermis_per_mm, sigma_a_dermis_per_mm, interface_absorbance)
+        attenuation = torch.exp(-interface_absorbance)
         eta_top, eta_mid, eta_derm = self._etas()
         s_epi = spectra.scattering_epidermis.to(ab.epidermis)
         s_derm = spectra.scattering_dermis.to(ab.epidermis)

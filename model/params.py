@@ -23,6 +23,7 @@ __all__ = [
     "LayerAbsorption",
     "SkinParams",
     "layer_absorption",
+    "layer_absorption_jacobian",
     "parameter_bounds",
 ]
 
@@ -148,3 +149,26 @@ def layer_absorption(
     derm = c_hd * s.blood_dermis + (1.0 - c_hd) * s.baseline
     interface = interface_melanin_fraction * c_m * melanin * epidermis_thickness_mm
     return LayerAbsorption(epi, derm, interface)
+
+
+def layer_absorption_jacobian(
+    params: SkinParams, spectra: ChromophoreSpectra, interface_melanin_fraction: float, epidermis_thickness_mm: float
+) -> torch.Tensor:
+    """∂(σa_epi, σa_derm, P_mel)/∂(parameters) of ``layer_absorption``, ``(3, ..., L, N_PARAMS)`` in the
+    order of ``PARAMETER_NAMES``: Eq. 11–12 are linear in each parameter, so each column is a difference
+    of chromophore spectra weighted by the others."""
+    s = spectra
+    beta, c_m = params.beta_m[..., None], params.C_m[..., None]
+    melanin = beta * s.eumelanin + (1.0 - beta) * s.pheomelanin
+    shape = melanin.shape
+    zero = torch.zeros(shape, dtype=melanin.dtype, device=melanin.device)
+    d_melanin = (s.eumelanin - s.pheomelanin).expand(shape)
+    f_d = interface_melanin_fraction * epidermis_thickness_mm
+    columns = {
+        "C_m": (melanin - s.baseline, zero, f_d * melanin),
+        "beta_m": (c_m * d_melanin, zero, f_d * c_m * d_melanin),
+        "C_he": ((s.blood_epidermis - s.baseline).expand(shape), zero, zero),
+        "C_bc": ((s.carotene - s.baseline).expand(shape), zero, zero),
+        "C_hd": (zero, (s.blood_dermis - s.baseline).expand(shape), zero),
+    }
+    return torch.stack([torch.stack([columns[n][k] for n in PARAMETER_NAMES], -1) for k in range(3)])
