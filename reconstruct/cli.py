@@ -16,7 +16,7 @@ from ..formats.errors import InputError
 from ..formats.outputs import check_outputs, write_file
 from ..model import PARAMETER_NAMES, SkinModel, load_model_settings
 from .spectra_io import read_spectra_csv
-from .spectrum_fit import fit_spectra
+from .spectrum_fit import METHODS, fit_spectra
 
 __all__ = ["fit_progress", "print_fit_summary", "register", "resolve_cube_path"]
 
@@ -28,6 +28,9 @@ def fit_spectrum(
     free_scale: bool = typer.Option(False, "--free-scale", help="Fit a radiometric scale per spectrum too."),
     specular_included: bool = typer.Option(
         False, "--specular-included", help="The data include the surface's specular reflection (sphere, SCI)."
+    ),
+    method: str = typer.Option(
+        "exact", "--method", help="exact: iterate on the model itself; tables: on its tabulated totals (faster, same residual)."
     ),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a figure of measured against fitted spectra."),
     force: bool = typer.Option(False, "--force", help="Replace the --plot file if it exists."),
@@ -45,6 +48,8 @@ def fit_spectrum(
         raise InputError(f"--range {wavelength_range!r}: expected lo:hi in nm, e.g. 400:700") from None
     if not (380.0 <= lo < hi <= 800.0):
         raise InputError(f"--range {wavelength_range!r}: must lie within 380–800 nm with lo < hi")
+    if method not in METHODS:
+        raise InputError(f"--method {method!r}: choose one of {', '.join(METHODS)}")
     if plot is not None:  # before the fit: a figure it could not write is refused now, not after it
         check_outputs(plot.parent, [plot.name], force=force, what="figure")
     data = read_spectra_csv(file).select(lo, hi)
@@ -52,7 +57,7 @@ def fit_spectrum(
     with _spectra_progress(len(data.names)) as progress:
         fit = fit_spectra(
             data.reflectance, data.wavelength_nm, SkinModel(settings), free_scale=free_scale, specular_included=specular_included,
-            progress=progress,
+            method=method, progress=progress,
         )
     seconds = time.perf_counter() - start
     rms = fit.rms_residual
@@ -77,6 +82,7 @@ def fit_spectrum(
         "samples": int(data.wavelength_nm.numel()),
         "free_scale": free_scale,
         "specular_included": specular_included,
+        "method": method,
         "seconds": round(seconds, 3),
     }
     if plot is not None:

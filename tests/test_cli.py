@@ -54,6 +54,12 @@ def test_fit_spectrum_json(tmp_path, run_cli):
         assert 0 < s["rms_residual"] < 0.06
         assert isinstance(s["at_bound"], list)
     assert report["summary"]["samples"] == 101
+    code, out, _ = run_cli("fit-spectrum", str(small), "--json", "--method", "tables")
+    assert code == 0
+    tabulated = json.loads(out)
+    assert tabulated["summary"]["method"] == "tables"
+    for s, t in zip(report["spectra"], tabulated["spectra"]):
+        assert t["rms_residual"] == pytest.approx(s["rms_residual"], rel=0.01)
 
 
 @pytest.mark.parametrize(
@@ -68,6 +74,7 @@ def test_fit_spectrum_json(tmp_path, run_cli):
         (["spectrum", "--illuminant", "D99"], "illuminant"),
         (["fit-spectrum", "/nonexistent/file.csv"], "cannot read"),
         (["fit-spectrum", str(NIST), "--range", "300:900"], "--range"),
+        (["fit-spectrum", str(NIST), "--method", "fast"], "--method"),
     ],
 )
 def test_bad_input_one_clear_line(args, needle, run_cli):
