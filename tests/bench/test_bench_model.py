@@ -6,6 +6,8 @@ Writes CSV and PNG figures to ``bench_results/`` (override with ``SKINLAYERS_BEN
 - ``fit_spectrum.csv``: one batched ``fit_spectra`` over the 100 NIST forearm spectra;
 - ``colour_bands.csv`` / ``colour_bands.png``: colour error against 151 samples versus the number of
   render wavelengths, with the time per spectrum — accuracy charted against speed;
+- ``point_fit.csv``: ``fit_spectra`` with ``method="exact"`` against ``"tables"`` side by side, on NIST
+  and on simulated spectra at the render bands — time per spectrum and residuals, spectrum by spectrum;
 - ``forward.csv``: time of the batched forward model (exact closed form versus Gaussian tables).
 
 Times are medians of repeats measured side by side in one run; the machine is shared and noisy, so
@@ -79,6 +81,47 @@ def test_fit_spectrum_nist():
                      "worst_rms": round(float(f.rms_residual.max()), 5),
                      "median_scale": round(float(f.scale.median()), 4)})
     write_csv("fit_spectrum.csv", rows)
+
+
+def test_point_fit_methods():
+    """The exact fit against the tabulated one (``method="tables"``, issue 16's ≤ 1 ms per spectrum),
+    side by side in one run: NIST's forearms (101 bands, no scale and free scale) and 4,000 simulated
+    spectra at the render bands (the map fit's homogeneous start; model every 1 nm through a 3 nm
+    band-pass, 1% noise). Times include the tables' build (made once per set of bands, fresh model);
+    the residual ratio is spectrum by spectrum, tables over exact. ``point_fit.csv``."""
+    data = read_spectra_csv(NIST).select(400, 700)
+    wl_render = torch.tensor(ModelSettings().render_wavelengths_nm, dtype=torch.float64)
+    g = torch.Generator().manual_seed(31)
+    lo = torch.tensor([0.002, 0.05, 0.0005, 0.0002, 0.002], dtype=torch.float64)
+    hi = torch.tensor([0.3, 0.95, 0.03, 0.01, 0.06], dtype=torch.float64)
+    truth = lo + (hi - lo) * torch.rand(4000, 5, generator=g, dtype=torch.float64)
+    fine = torch.arange(float(wl_render.min()) - 2, float(wl_render.max()) + 3, 1.0, dtype=torch.float64)
+    r_fine = SkinModel().diffuse_reflectance(SkinParams.from_tensor(truth), fine)
+    weights = torch.tensor([1.0, 2.0, 3.0, 2.0, 1.0], dtype=torch.float64) / 9.0
+    idx = (wl_render - fine[0]).long()
+    banded = sum(weights[j] * r_fine[:, idx + j - 2] for j in range(5))
+    simulated = banded * (1 + 0.01 * torch.randn(banded.shape, generator=g, dtype=torch.float64))
+    cases = {"NIST, no scale": (data.reflectance, data.wavelength_nm, {}),
+             "NIST, free scale": (data.reflectance, data.wavelength_nm, {"free_scale": True}),
+             f"simulated, {wl_render.numel()} render bands": (simulated, wl_render, {})}
+    fit_spectra(data.reflectance[:2], data.wavelength_nm)  # warm-up (forward-mode kernels)
+    rows = []
+    for case, (y, wl, kw) in cases.items():
+        fits = {}
+        for method in ("exact", "tables"):
+            model = SkinModel()  # fresh: the tables' build is in the time
+            start = time.perf_counter()
+            fits[method] = fit_spectra(y, wl, model, method=method, **kw)
+            seconds = time.perf_counter() - start
+            ratio = fits[method].rms_residual / fits["exact"].rms_residual
+            rows.append({"case": case, "method": method, "spectra": y.shape[0], "bands": wl.numel(),
+                         "ms_per_spectrum": round(1000 * seconds / y.shape[0], 3),
+                         "median_rms": round(float(fits[method].rms_residual.median()), 6),
+                         "worse_than_exact_by_1pct_pct": round(100 * float((ratio > 1.01).double().mean()), 2),
+                         "better_than_exact_by_1pct_pct": round(100 * float((ratio < 0.99).double().mean()), 2),
+                         "worst_ratio": round(float(ratio.max()), 4)})
+    write_csv("point_fit.csv", rows, "fit_spectra: exact against tabulated totals, side by side")
+    assert all(r["median_rms"] > 0 for r in rows)
 
 
 def test_fit_spectrum_nist_profiles():

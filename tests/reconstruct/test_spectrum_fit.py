@@ -108,8 +108,8 @@ def test_nist_forearm_residuals():
 def test_tabulated_fit_matches_the_exact_fit(free_scale):
     """``method="tables"`` (tabulated totals, library start) on NIST forearms: no spectrum's residual
     worse than the exact fit's by more than 1%, and the residual it reports is the exact model's at its
-    parameters. Measured on all 100 (101 bands): identical median residuals (0.0227; free scale
-    0.0067) at 20.6 against 53.7 ms per spectrum (free scale 16.7 against 76.5), docs/model.md."""
+    parameters. Measured on all 100 (101 bands): identical residuals (median 0.0227; free scale
+    0.0067) at 16.6 against 23.5 ms per spectrum (free scale 17.0 against 51.1; docs/point_fit.csv)."""
     data = read_spectra_csv(NIST).select(400, 700)
     y, wl = data.reflectance[::4], data.wavelength_nm
     model = SkinModel()
