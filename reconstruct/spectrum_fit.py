@@ -61,6 +61,12 @@ LIBRARY_LEVELS = {
 }
 #: Library entries each spectrum starts from (nearest first).
 LIBRARY_STARTS = 2
+#: The tabulated fit stops, after this many iterations, each start losing to its spectrum's best by
+#: over ``PRUNE_FACTOR`` in cost. Measured on 4,000 simulated spectra at the render bands: 0.78 → 0.56
+#: ms per spectrum, none worse; after 3 iterations 0.2% were worse (up to 2.3×). The exact fit, the
+#: reference, runs every start to the end (pruned the same way, 1 in 4,000 came out 1.7% worse).
+PRUNE_AFTER = 5
+PRUNE_FACTOR = 4.0
 #: A parameter within this fraction of its range of a bound is reported at the bound.
 AT_BOUND_FRACTION = 1e-3
 #: The free scale's log is kept within ±this (a factor e³: any calibration error is far inside).
@@ -117,8 +123,9 @@ def fit_spectra(
     autodiff) from the paper's start and two darker ones; ``"tables"`` iterates on the model's totals
     tabulated at these bands (``model.point_tables``: within ~1e-6 of the exact model, Jacobian in
     closed form) from each spectrum's two nearest entries of a library of model spectra and the two
-    darker starts (measured 2–4× faster on NIST, 3–4× at eight bands, at the same residuals:
-    docs/model.md). Either way the best end point is kept and its residual is the exact model's.
+    darker starts, pruning losing starts early (measured 1.4–3.7× faster on NIST with the build,
+    4.5× at eight bands, at the same residuals: docs/model.md). Either way the best end point is
+    kept and its residual is the exact model's.
     ``starts`` replaces the fixed starts. ``chunk``: spectra fitted at once (default: as many as
     ``_CHUNK_BYTES`` holds); ``progress(done, total)`` after each chunk.
     """
@@ -140,7 +147,7 @@ def fit_spectra(
     for first in range(0, y.shape[0], size):
         part = y[first:first + size]
         problem, x0 = _starts(part, wl, model, fixed, free_scale, specular_included, tables, library=starts is None)
-        x, cost, converged, iterations = _solve(problem, x0, max_iterations, tolerance)
+        x, cost, converged, iterations = _solve(problem, x0, max_iterations, tolerance, n_start if method == "tables" else 1)
         fits.append(_best(problem, part, x, cost, converged, iterations, n_start, free_scale))
         if progress is not None:
             progress(first + part.shape[0], y.shape[0])
@@ -221,10 +228,14 @@ def _library_start(y: torch.Tensor, tables: PointTables, free_scale: bool) -> tu
     return (grid[pick] - lo) / (hi - lo), torch.log(gain.gather(1, pick))
 
 
-def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: float):
+def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: float, prune_starts: int = 1):
     """Projected LM on the box until every problem has converged: a variable resting on a bound with the
-    gradient pushing outward is held there. Only problems not yet converged are evaluated. Returns the
-    end points, their costs ‖r‖², the converged flags and the iterations run."""
+    gradient pushing outward is held there. Only problems not yet converged are evaluated. With
+    ``prune_starts`` > 1 (the starts per spectrum, consecutive), after ``PRUNE_AFTER`` iterations a
+    start whose cost is over ``PRUNE_FACTOR`` times its spectrum's best start's is stopped where it
+    is (it cannot be the one kept unless it would have overtaken). Returns the end
+    points, their costs ‖r‖², the converged flags (a stopped start counts as converged) and the
+    iterations run."""
 
     def residual_and_jacobian(xv, target):
         value, jac = problem.predict_and_jacobian(xv)
@@ -258,6 +269,10 @@ def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: f
         relative = (ca - cost_new) / ca.clamp_min(1e-30)
         # converged: the cost stopped falling, the step vanished, or no damping makes it fall
         converged[act] = (better & ((relative < tolerance) | (moved < 1e-9))) | (~better & (moved < 1e-12)) | (da >= LAMBDA_MAX)
+        if prune_starts > 1 and iterations == PRUNE_AFTER:
+            per_spectrum = cost.view(-1, prune_starts)
+            losing = per_spectrum > PRUNE_FACTOR * per_spectrum.amin(1, keepdim=True)
+            converged |= losing.reshape(-1)
         if bool(converged.all()):
             break
     return x, cost, converged, iterations

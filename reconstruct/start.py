@@ -4,7 +4,7 @@
 
 ``homogeneous``: the point-spectrum fit (``spectrum_fit.fit_spectra`` with ``method="tables"``:
 batched projected Levenberg–Marquardt on the homogeneous model's tabulated totals, four starts per
-spectrum; measured 3× faster than the exact fit at the render bands, never more than 1% worse,
+spectrum; measured 4.5× faster than the exact fit at the render bands, never more than 1% worse,
 docs/model.md) of every loss pixel's
 spectrum, divided by the camera's exit factor (the cube holds reflectance factors at the view angle,
 the homogeneous model diffuse reflectance), ignoring the cross-talk between pixels and the window's

@@ -30,6 +30,19 @@ def simulate(params: torch.Tensor, wl: torch.Tensor, seed: int) -> torch.Tensor:
     return banded + NOISE * torch.randn(banded.shape, generator=g, dtype=torch.float64)
 
 
+def skins(n: int, seed: int) -> torch.Tensor:
+    """``(n, 5)`` parameters uniform over skin's usual range (pale to dark, some carotene)."""
+    g = torch.Generator().manual_seed(seed)
+    lo = torch.tensor([0.002, 0.05, 0.0005, 0.0002, 0.002], dtype=torch.float64)
+    hi = torch.tensor([0.2, 0.95, 0.02, 0.01, 0.04], dtype=torch.float64)
+    return lo + (hi - lo) * torch.rand(n, 5, generator=g, dtype=torch.float64)
+
+
+def rms_at(params: torch.Tensor, wl: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
+    """The exact model's RMS residual ``(B,)`` at given parameters."""
+    return torch.sqrt(((SkinModel().diffuse_reflectance(SkinParams.from_tensor(params), wl) - measured) ** 2).mean(-1))
+
+
 def crlb_std(params: torch.Tensor, wl: torch.Tensor) -> torch.Tensor:
     """Cramér–Rao standard deviation of each parameter for white noise of σ = NOISE, ``(B, 5)``."""
     model = SkinModel()
@@ -49,15 +62,12 @@ def test_recovers_what_the_data_identify():
     Weakly identified parameters (dermal blood under much melanin has a Cramér–Rao spread of over
     100%) may legitimately wander along the valley to a bound with a lower residual than the truth.
     """
-    g = torch.Generator().manual_seed(7)
-    lo = torch.tensor([0.002, 0.05, 0.0005, 0.0002, 0.002], dtype=torch.float64)
-    hi = torch.tensor([0.2, 0.95, 0.02, 0.01, 0.04], dtype=torch.float64)
-    truth = lo + (hi - lo) * torch.rand(30, 5, generator=g, dtype=torch.float64)
+    truth = skins(30, seed=7)
     wl = torch.arange(400.0, 701.0, 3.0, dtype=torch.float64)
     measured = simulate(truth, wl, seed=11)
     fit = fit_spectra(measured, wl)
     est = fit.params.as_tensor()
-    truth_rms = torch.sqrt(((SkinModel().diffuse_reflectance(SkinParams.from_tensor(truth), wl) - measured) ** 2).mean(-1))
+    truth_rms = rms_at(truth, wl, measured)
     assert bool((fit.rms_residual <= truth_rms * (1 + 1e-6)).all())
     std = crlb_std(truth, wl)
     identified = std / truth < 0.25
@@ -109,7 +119,7 @@ def test_tabulated_fit_matches_the_exact_fit(free_scale):
     """``method="tables"`` (tabulated totals, library start) on NIST forearms: no spectrum's residual
     worse than the exact fit's by more than 1%, and the residual it reports is the exact model's at its
     parameters. Measured on all 100 (101 bands): identical residuals (median 0.0227; free scale
-    0.0067) at 16.6 against 23.5 ms per spectrum (free scale 17.0 against 51.1; docs/point_fit.csv)."""
+    0.0067) at 18.8 against 26.8 ms per spectrum (free scale 17.4 against 64.4; docs/point_fit.csv)."""
     data = read_spectra_csv(NIST).select(400, 700)
     y, wl = data.reflectance[::4], data.wavelength_nm
     model = SkinModel()
@@ -125,14 +135,11 @@ def test_tabulated_fit_on_noisy_simulated_spectra():
     """Nine narrow bands (the camera's kind of data), spectra rendered at higher fidelity than the
     fit (1 nm model through a 3 nm band-pass, noise 0.003): the tabulated fit reaches the noise, and
     a wrong method name is refused."""
-    g = torch.Generator().manual_seed(21)
-    lo = torch.tensor([0.002, 0.05, 0.0005, 0.0002, 0.002], dtype=torch.float64)
-    hi = torch.tensor([0.2, 0.95, 0.02, 0.01, 0.04], dtype=torch.float64)
-    truth = lo + (hi - lo) * torch.rand(200, 5, generator=g, dtype=torch.float64)
+    truth = skins(200, seed=21)
     wl = torch.arange(430.0, 671.0, 30.0, dtype=torch.float64)
     measured = simulate(truth, wl, seed=23)
     fit = fit_spectra(measured, wl, method="tables")
-    truth_rms = torch.sqrt(((SkinModel().diffuse_reflectance(SkinParams.from_tensor(truth), wl) - measured) ** 2).mean(-1))
+    truth_rms = rms_at(truth, wl, measured)
     assert float((fit.rms_residual <= truth_rms * 1.01).float().mean()) > 0.97
     # five parameters fitted to nine bands leave √(4/9) of the noise (measured 0.00203; the exact fit 0.00202)
     expected = NOISE * math.sqrt((wl.numel() - N_PARAMS) / wl.numel())
