@@ -98,7 +98,8 @@ class PointTables:
                            self.coefficients.to(device), self.nodes)
 
     def totals(self, sigma_a_epidermis_per_mm: torch.Tensor, sigma_a_dermis_per_mm: torch.Tensor):
-        """The five totals ``(5, M, L)`` and their partials with respect to log σa of each layer (each the same)."""
+        """The five totals ``(5, M, L)`` at σa ``(M, L)`` of each layer, and their partials with respect to
+        log σa_epidermis and log σa_dermis (each ``(5, M, L)``)."""
         m, n_band = sigma_a_epidermis_per_mm.shape
         s = self.nodes
         dev = sigma_a_epidermis_per_mm.device

@@ -99,6 +99,7 @@ class _Problem:
     box_hi: torch.Tensor
     predict: Callable[[torch.Tensor], torch.Tensor]
     predict_and_jacobian: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+    n_start: int  # starts per spectrum, consecutive rows
 
 
 def fit_spectra(
@@ -140,15 +141,15 @@ def fit_spectra(
     wl = torch.as_tensor(wavelength_nm, dtype=torch.float64)
     fixed = starts or METHODS[method]
     tables = model.point_tables(wl, y.device) if method == "tables" else None
-    n_start = len(fixed) + (LIBRARY_STARTS if tables is not None and starts is None else 0)
+    n_start = len(fixed) + (LIBRARY_STARTS if tables is not None and starts is None else 0)  # for the chunk size
     per_spectrum = n_start * (N_PARAMS + int(free_scale)) * wl.numel() * _BYTES_PER_ELEMENT
     size = chunk or max(1, int(_CHUNK_BYTES // per_spectrum))
     fits = []
     for first in range(0, y.shape[0], size):
         part = y[first:first + size]
         problem, x0 = _starts(part, wl, model, fixed, free_scale, specular_included, tables, library=starts is None)
-        x, cost, converged, iterations = _solve(problem, x0, max_iterations, tolerance, n_start if method == "tables" else 1)
-        fits.append(_best(problem, part, x, cost, converged, iterations, n_start, free_scale))
+        x, cost, converged, iterations = _solve(problem, x0, max_iterations, tolerance, prune=method == "tables")
+        fits.append(_best(problem, part, x, cost, converged, iterations, free_scale))
         if progress is not None:
             progress(first + part.shape[0], y.shape[0])
     return fits[0] if len(fits) == 1 else _joined(fits)
@@ -169,7 +170,7 @@ def _joined(fits: list[SpectrumFit]) -> SpectrumFit:
 
 def _starts(y, wl, model: SkinModel, starts, free_scale: bool, specular_included: bool, tables: PointTables | None,
             library: bool) -> tuple[_Problem, torch.Tensor]:
-    """Every spectrum repeated once per start (its library entry first, where there is one), the
+    """Every spectrum repeated once per start (its library entries first, where there are any), the
     unknowns scaled to the box, the model that predicts them and the one the iterations use."""
     lo, hi = parameter_bounds(y.dtype, y.device)
     span = hi - lo
@@ -207,7 +208,7 @@ def _starts(y, wl, model: SkinModel, starts, free_scale: bool, specular_included
         return r + offset, jac
 
     iterate = tabulated if tables is not None else (lambda xv: forward_jacobian(predict, xv))
-    return _Problem(y.repeat_interleave(n_start, dim=0), box_lo, box_hi, predict, iterate), x
+    return _Problem(y.repeat_interleave(n_start, dim=0), box_lo, box_hi, predict, iterate, n_start), x
 
 
 def _library_start(y: torch.Tensor, tables: PointTables, free_scale: bool) -> tuple[torch.Tensor, torch.Tensor]:
@@ -228,12 +229,12 @@ def _library_start(y: torch.Tensor, tables: PointTables, free_scale: bool) -> tu
     return (grid[pick] - lo) / (hi - lo), torch.log(gain.gather(1, pick))
 
 
-def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: float, prune_starts: int = 1):
+def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: float, prune: bool = False):
     """Projected LM on the box until every problem has converged: a variable resting on a bound with the
     gradient pushing outward is held there. Only problems not yet converged are evaluated. With
-    ``prune_starts`` > 1 (the starts per spectrum, consecutive), after ``PRUNE_AFTER`` iterations a
-    start whose cost is over ``PRUNE_FACTOR`` times its spectrum's best start's is stopped where it
-    is (it cannot be the one kept unless it would have overtaken). Returns the end
+    ``prune``, after ``PRUNE_AFTER`` iterations a start whose cost is over ``PRUNE_FACTOR`` times its
+    spectrum's best start's is stopped where it is (it cannot be the one kept unless it would have
+    overtaken). Returns the end
     points, their costs ‖r‖², the converged flags (a stopped start counts as converged) and the
     iterations run."""
 
@@ -269,8 +270,8 @@ def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: f
         relative = (ca - cost_new) / ca.clamp_min(1e-30)
         # converged: the cost stopped falling, the step vanished, or no damping makes it fall
         converged[act] = (better & ((relative < tolerance) | (moved < 1e-9))) | (~better & (moved < 1e-12)) | (da >= LAMBDA_MAX)
-        if prune_starts > 1 and iterations == PRUNE_AFTER:
-            per_spectrum = cost.view(-1, prune_starts)
+        if prune and problem.n_start > 1 and iterations == PRUNE_AFTER:
+            per_spectrum = cost.view(-1, problem.n_start)
             losing = per_spectrum > PRUNE_FACTOR * per_spectrum.amin(1, keepdim=True)
             converged |= losing.reshape(-1)
         if bool(converged.all()):
@@ -278,9 +279,9 @@ def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: f
     return x, cost, converged, iterations
 
 
-def _best(problem: _Problem, y, x, cost, converged, iterations: int, n_start: int, free_scale: bool) -> SpectrumFit:
+def _best(problem: _Problem, y, x, cost, converged, iterations: int, free_scale: bool) -> SpectrumFit:
     """Each spectrum's best start: its parameters, fitted spectrum, residual, scale and bounds reached."""
-    n_spec = y.shape[0]
+    n_spec, n_start = y.shape[0], problem.n_start
     pick = torch.arange(n_spec, device=y.device) * n_start + cost.reshape(n_spec, n_start).argmin(dim=1)
     x_best = x[pick]
     lo, hi = parameter_bounds(y.dtype, y.device)

@@ -14,13 +14,14 @@ from skinlayers.model.point_tables import POINT_TABLE_NODES, PointTables
 
 
 def random_params(n: int, seed: int) -> torch.Tensor:
-    """Parameters spread over the whole box, log-uniform in the concentrations (skin spans decades)."""
-    lo, hi = parameter_bounds(torch.float64)
+    """Parameters spread over the whole box: concentrations log-uniform from a floor to the upper
+    bound (skin spans decades), β_m uniform."""
+    _, hi = parameter_bounds(torch.float64)
+    floor = torch.tensor([1e-3, 1.0, 1e-4, 1e-5, 1e-4], dtype=torch.float64)  # β_m is replaced below
     g = torch.Generator().manual_seed(seed)
     u = torch.rand(n, N_PARAMS, generator=g, dtype=torch.float64)
-    floor = torch.tensor([1e-3, 0.0, 1e-4, 1e-5, 1e-4], dtype=torch.float64).clamp_min(lo)
-    p = torch.exp(torch.log(floor.clamp_min(1e-12)) + u * (torch.log(hi) - torch.log(floor.clamp_min(1e-12))))
-    p[:, 1] = lo[1] + u[:, 1] * (hi[1] - lo[1])  # β_m is a fraction, uniform
+    p = floor * (hi / floor) ** u
+    p[:, 1] = hi[1] * u[:, 1]  # β_m is a fraction in [0, 1]
     return p
 
 
