@@ -234,9 +234,8 @@ def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: f
     gradient pushing outward is held there. Only problems not yet converged are evaluated. With
     ``prune``, after ``PRUNE_AFTER`` iterations a start whose cost is over ``PRUNE_FACTOR`` times its
     spectrum's best start's is stopped where it is (it cannot be the one kept unless it would have
-    overtaken). Returns the end
-    points, their costs ‖r‖², the converged flags (a stopped start counts as converged) and the
-    iterations run."""
+    overtaken). Returns the end points, their costs ‖r‖², the converged flags (a stopped start counts
+    as converged) and the iterations run."""
 
     def residual_and_jacobian(xv, target):
         value, jac = problem.predict_and_jacobian(xv)
