@@ -60,7 +60,9 @@ class SlabOptics:
     over ``(...)``.
 
     ``z_b_top`` and ``z_b_bottom`` are the extrapolation distances of the boundary the light
-    enters through and of the opposite one; ``source_depth_mm`` is ℓ (or its cap).
+    enters through and of the opposite one; ``source_depth_mm`` is ℓ (or its cap). ``thickness_mm`` is
+    one number, or a tensor broadcast with the coefficients (a point fit that frees the epidermis's
+    thickness per spectrum; the totals and transforms take it, the real-space pair sum does not).
     """
 
     albedo: torch.Tensor
@@ -68,14 +70,14 @@ class SlabOptics:
     source_depth_mm: torch.Tensor
     z_b_top_mm: torch.Tensor
     z_b_bottom_mm: torch.Tensor
-    thickness_mm: float
+    thickness_mm: float | torch.Tensor
 
     @classmethod
     def build(
         cls,
         sigma_a_per_mm: torch.Tensor,
         sigma_s_prime_per_mm: torch.Tensor,
-        thickness_mm: float,
+        thickness_mm: float | torch.Tensor,
         eta_top: float,
         eta_bottom: float,
         source_depth: str = "mean_free_path",
@@ -90,18 +92,23 @@ class SlabOptics:
         sigma_t = sigma_a + sigma_s
         albedo = sigma_s / sigma_t
         ell = 1.0 / sigma_t
-        if math.isfinite(thickness_mm):
+        per_element = isinstance(thickness_mm, torch.Tensor)
+        if per_element:
+            thickness_mm = thickness_mm.to(sigma_t)
+            if not bool(torch.isfinite(thickness_mm).all()) or bool((thickness_mm <= 0).any()):
+                raise ValueError("a per-element thickness must be finite and > 0 (mm)")
+        if per_element or math.isfinite(thickness_mm):
             if bool((sigma_a <= 0).any()):
                 raise ValueError(
                     "sigma_a must be > 0 for a slab: the image series sums geometrically only with some "
                     "absorption (a clear slab is the limit sigma_a -> 0; use e.g. 1e-9 /mm)"
                 )
             if source_depth == "capped":
-                ell = torch.clamp(ell, max=0.5 * thickness_mm)
+                ell = torch.minimum(ell, torch.as_tensor(0.5 * thickness_mm).to(ell))
             elif bool((ell >= thickness_mm).any()):
                 worst = float(ell.max())
                 raise ValueError(
-                    f"a layer of {thickness_mm} mm is thinner than one transport mean free path "
+                    f"a layer of {float(torch.as_tensor(thickness_mm).min()):g} mm is thinner than one transport mean free path "
                     f"(l = {worst:.4f} mm): the multipole's source would lie below it. Use shorter "
                     "wavelengths or source_depth='capped'"
                 )
@@ -109,7 +116,7 @@ class SlabOptics:
         sigma_tr = torch.sqrt(3.0 * sigma_a * sigma_t)
         z_top = 2.0 * extrapolation_factor(eta_top).to(sigma_t) * diffusion
         z_bottom = 2.0 * extrapolation_factor(eta_bottom).to(sigma_t) * diffusion
-        return cls(albedo, sigma_tr, ell, z_top, z_bottom, float(thickness_mm))
+        return cls(albedo, sigma_tr, ell, z_top, z_bottom, thickness_mm if per_element else float(thickness_mm))
 
 
 def _flux_term(z: torch.Tensor, r2: torch.Tensor, sigma_tr: torch.Tensor) -> torch.Tensor:
@@ -269,9 +276,11 @@ def _slab_hankel(k: torch.Tensor, opt: SlabOptics, unsqueeze: bool = True) -> tu
     """Closed-form infinite multipole sums (see the module docstring)."""
     expand = (lambda x: x[..., None]) if unsqueeze else (lambda x: x)
     d = opt.thickness_mm
+    period = expand(d + opt.z_b_top_mm + opt.z_b_bottom_mm)
+    if isinstance(d, torch.Tensor):
+        d = expand(d.expand_as(opt.albedo))
     a = expand(opt.source_depth_mm)
     b = expand(opt.source_depth_mm + 2.0 * opt.z_b_top_mm)
-    period = expand(d + opt.z_b_top_mm + opt.z_b_bottom_mm)
     sigma = expand(opt.sigma_tr_per_mm)
     s = torch.sqrt(sigma**2 + k.to(sigma) ** 2) if unsqueeze else sigma
     q = torch.exp(-2.0 * period * s)
@@ -296,14 +305,15 @@ def multipole_totals_from(opt: SlabOptics) -> tuple[torch.Tensor, torch.Tensor]:
 def multipole_totals(
     sigma_a_per_mm: torch.Tensor,
     sigma_s_prime_per_mm: torch.Tensor,
-    thickness_mm: float,
+    thickness_mm: float | torch.Tensor,
     eta_top: float,
     eta_bottom: float,
     *,
     source_depth: str = "mean_free_path",
 ) -> LayerProfiles:
-    """Plane integrals of R⁺, T⁺, R⁻, T⁻ (all pairs, closed form), differentiable, shapes ``(...)``."""
-    if not math.isfinite(thickness_mm):
+    """Plane integrals of R⁺, T⁺, R⁻, T⁻ (all pairs, closed form), differentiable, shapes ``(...)``;
+    ``thickness_mm`` may be a tensor broadcast with the coefficients (differentiable in it too)."""
+    if not isinstance(thickness_mm, torch.Tensor) and not math.isfinite(thickness_mm):
         r_plus = dipole_total(sigma_a_per_mm, sigma_s_prime_per_mm, eta_top)
         zero = torch.zeros_like(r_plus)
         return LayerProfiles(r_plus, zero, zero, zero)

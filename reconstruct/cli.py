@@ -16,7 +16,8 @@ from ..formats.errors import InputError
 from ..formats.outputs import check_outputs, write_file
 from ..model import PARAMETER_NAMES, SkinModel, load_model_settings
 from .spectra_io import read_spectra_csv
-from .spectrum_fit import METHODS, fit_spectra
+from .spectrum_fit import METHODS
+from .spectrum_models import MODEL_CHOICES, candidate_label, select_spectrum_models, spectrum_candidates
 
 __all__ = ["fit_progress", "print_fit_summary", "register", "resolve_cube_path"]
 
@@ -32,11 +33,21 @@ def fit_spectrum(
     method: str = typer.Option(
         "exact", "--method", help="exact: iterate on the model itself; tables: on its tabulated totals (faster, same residual)."
     ),
+    model_choice: str = typer.Option(
+        "auto", "--model",
+        help="auto: per spectrum, free the epidermis's thickness, the dermal blood's oxygenation or the dermis's "
+             "scattering where BIC says the spectrum supports it; paper: DWRR08's (five chromophores, free scale); "
+             "fixed: the five chromophores; or a YAML file (free: [...], free_scale: ...).",
+    ),
+    noise: Optional[float] = typer.Option(
+        None, "--noise", help="The measurement's noise σ (reflectance) for the criterion; default: from the residual."
+    ),
     plot: Optional[Path] = typer.Option(None, "--plot", help="Write a figure of measured against fitted spectra."),
     force: bool = typer.Option(False, "--force", help="Replace the --plot file if it exists."),
     config: Optional[Path] = typer.Option(None, "--config", help="Model settings YAML."),
 ) -> None:
-    """Fit C_m, β_m, C_he, C_bc, C_hd to measured reflectance spectra (homogeneous model, one batched fit).
+    """Fit C_m, β_m, C_he, C_bc, C_hd (and what each spectrum supports freeing) to measured reflectance
+    spectra with the homogeneous model, all spectra in one batched fit.
 
     Example: skinlayers fit-spectrum tests/data/nist_skin_reflectance_forearm_avg_370-830nm.csv --json
     """
@@ -50,16 +61,22 @@ def fit_spectrum(
         raise InputError(f"--range {wavelength_range!r}: must lie within 380–800 nm with lo < hi")
     if method not in METHODS:
         raise InputError(f"--method {method!r}: choose one of {', '.join(METHODS)}")
+    if noise is not None and not noise > 0:
+        raise InputError(f"--noise {noise}: must be a positive reflectance (e.g. 0.003)")
+    if model_choice not in MODEL_CHOICES and not Path(model_choice).is_file():
+        raise InputError(f"--model {model_choice!r}: choose one of {', '.join(MODEL_CHOICES)}, or give a YAML file")
+    candidates, free_scale = spectrum_candidates(model_choice, free_scale, settings.profiles)
     if plot is not None:  # before the fit: a figure it could not write is refused now, not after it
         check_outputs(plot.parent, [plot.name], force=force, what="figure")
     data = read_spectra_csv(file).select(lo, hi)
     start = time.perf_counter()
-    with _spectra_progress(len(data.names)) as progress:
-        fit = fit_spectra(
-            data.reflectance, data.wavelength_nm, SkinModel(settings), free_scale=free_scale, specular_included=specular_included,
-            method=method, progress=progress,
+    with _spectra_progress(len(candidates), "models") as progress:
+        selection = select_spectrum_models(
+            data.reflectance, data.wavelength_nm, SkinModel(settings), candidates=candidates, free_scale=free_scale,
+            specular_included=specular_included, noise=noise, method=method, progress=progress,
         )
     seconds = time.perf_counter() - start
+    fit = selection.fit
     rms = fit.rms_residual
     spectra = []
     for b, name in enumerate(data.names):
@@ -69,10 +86,12 @@ def fit_spectrum(
             "rms_residual": float(rms[b]),
             "at_bound": fit.at_bound[b],
             "converged": bool(fit.converged[b]),
+            "model": _model_entry(selection, b),
         }
         if free_scale:
             entry["scale"] = float(fit.scale[b])
         spectra.append(entry)
+    freed_counts = {candidate_label(c): int((selection.choice == j).sum()) for j, c in enumerate(selection.candidates)}
     summary = {
         "count": len(spectra),
         "median_rms_residual": float(rms.median()),
@@ -83,6 +102,9 @@ def fit_spectrum(
         "free_scale": free_scale,
         "specular_included": specular_included,
         "method": method,
+        "model": model_choice,
+        "criterion": selection.criterion_name,
+        "chosen": freed_counts,
         "seconds": round(seconds, 3),
     }
     if plot is not None:
@@ -99,13 +121,16 @@ def fit_spectrum(
         table.add_column(n, justify="right")
     if free_scale:
         table.add_column("scale", justify="right")
+    table.add_column("freed")
     table.add_column("RMS", justify="right")
     table.add_column("at bound")
     for s in spectra[:_TABLE_ROWS]:
         row = [s["name"], *(f"{s['params'][n]:.4g}" for n in PARAMETER_NAMES)]
         if free_scale:
             row.append(f"{s['scale']:.3f}")
-        row += [f"{s['rms_residual']:.4f}", ", ".join(s["at_bound"])]
+        freed = s["model"]["freed"]
+        row += [", ".join(f"{_SHORT[n]} {s['model']['constants'][n]:.3g}" for n in freed) or "—",
+                f"{s['rms_residual']:.4f}", ", ".join(s["at_bound"])]
         table.add_row(*row)
     console = Console()
     console.print(table)
@@ -116,23 +141,40 @@ def fit_spectrum(
         f"{summary['median_rms_residual']:.4f}, worst {summary['worst_rms_residual']:.4f} ({summary['worst']}); "
         f"{seconds:.2f} s"
     )
+    if len(selection.candidates) > 1:
+        counts = ", ".join(f"{label} {n}" for label, n in freed_counts.items() if n)
+        console.print(f"models chosen ({selection.criterion_name}): {counts} (--json says why, per spectrum)")
     if plot is not None:
         console.print(f"figure: {plot}")
 
 
 #: Spectra the table shows; --json gives all.
 _TABLE_ROWS = 200
+#: The freed constants' names in the table.
+_SHORT = {"epidermis_thickness_mm": "d_epi mm", "oxygenation_dermis": "γ_d", "dermis_scattering_ratio": "σs′ ratio"}
+
+
+def _model_entry(selection, b: int) -> dict:
+    """Spectrum ``b``'s model in fit-spectrum's JSON: what it freed, every constant's value, each
+    candidate's criterion and RMS residual, and why the winner won."""
+    return {
+        "freed": selection.fit.freed[b],
+        "constants": {n: float(v[b]) for n, v in selection.fit.constants.items()},
+        "criterion": {candidate_label(c): float(selection.criterion[b, j]) for j, c in enumerate(selection.candidates)},
+        "rms_residual": {candidate_label(c): float(selection.rms_residual[b, j]) for j, c in enumerate(selection.candidates)},
+        "why": selection.reason(b),
+    }
 
 
 @contextmanager
-def _spectra_progress(count: int):
-    """A progress bar over the spectra when the fit runs in more than one chunk; yields the callback."""
+def _spectra_progress(count: int, what: str = "spectra"):
+    """A progress bar (over the models fitted, or the spectra); yields the callback."""
     from rich.console import Console  # noqa: PLC0415
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn  # noqa: PLC0415
 
     with Progress(TextColumn("fit-spectrum"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
                   TimeRemainingColumn(), console=Console(stderr=True), transient=True) as bar:
-        task = bar.add_task("spectra", total=count)
+        task = bar.add_task(what, total=count)
         yield lambda done, total: bar.update(task, completed=done, total=total)
 
 

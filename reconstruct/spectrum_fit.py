@@ -13,7 +13,7 @@ gradient pushing outward is held there (its column zeroed: ``least_squares`` the
 bound is reached exactly (and reported) instead of approached forever, as a sigmoid
 reparameterisation would.
 
-``fit_spectra`` is three named steps: ``_starts`` (every spectrum from every start), ``_solve`` (the
+``fit_spectra`` is three named steps: ``_starts`` (every spectrum from every start), ``solve_box`` (the
 projected LM iterations), ``_best`` (each spectrum's best end point, its residual and bounds), run on
 chunks of spectra small enough that memory stays bounded (each spectrum's fit is its own: chunks change
 nothing but the memory), so a file of ten thousand spectra fits in the time of ten thousand, with progress.
@@ -35,7 +35,8 @@ from ..model.radiometry import specular_reflectance
 from .least_squares import LAMBDA0, LAMBDA_MAX, damped_step, forward_jacobian, next_damping, predicted_decrease
 from .unknowns import near_bound
 
-__all__ = ["AT_BOUND_FRACTION", "PAPER_START", "SpectrumFit", "fit_spectra"]
+__all__ = ["AT_BOUND_FRACTION", "PAPER_START", "BoxProblem", "SpectrumFit", "fit_spectra", "joined", "solve_box",
+           "specular_offset"]
 
 #: DWRR08 §8 ("Fit convergence"): eumelanin 0.73%, pheomelanin 0.3%, epidermal blood 0.3%, carotene 0,
 #: dermal blood 0.6%.
@@ -78,7 +79,9 @@ _BYTES_PER_ELEMENT, _CHUNK_BYTES = 1200.0, 1 << 30
 
 @dataclass
 class SpectrumFit:
-    """Per spectrum ``(B,)``: parameters, residual RMS (reflectance units), scale, bound flags."""
+    """Per spectrum ``(B,)``: parameters, residual RMS (reflectance units), scale, bound flags; with a
+    model that frees constants (``spectrum_models``), each constant's value ``(B,)`` and the names each
+    spectrum freed (the rest at the settings' values)."""
 
     params: SkinParams
     rms_residual: torch.Tensor
@@ -87,10 +90,12 @@ class SpectrumFit:
     iterations: int
     converged: torch.Tensor
     fitted: torch.Tensor = field(repr=False)
+    constants: dict[str, torch.Tensor] = field(default_factory=dict)
+    freed: list[list[str]] = field(default_factory=list)
 
 
 @dataclass
-class _Problem:
+class BoxProblem:
     """The batched problem: ``target`` ``(B·S, L)``, the box ``[box_lo, box_hi]`` of the unknowns and
     ``predict`` ``(B·S, n)`` → ``(B·S, L)``."""
 
@@ -148,15 +153,17 @@ def fit_spectra(
     for first in range(0, y.shape[0], size):
         part = y[first:first + size]
         problem, x0 = _starts(part, wl, model, fixed, free_scale, specular_included, tables, library=starts is None)
-        x, cost, converged, iterations = _solve(problem, x0, max_iterations, tolerance, prune=method == "tables")
+        x, cost, converged, iterations = solve_box(problem, x0, max_iterations, tolerance, prune=method == "tables")
         fits.append(_best(problem, part, x, cost, converged, iterations, free_scale))
         if progress is not None:
             progress(first + part.shape[0], y.shape[0])
-    return fits[0] if len(fits) == 1 else _joined(fits)
+    return joined(fits)
 
 
-def _joined(fits: list[SpectrumFit]) -> SpectrumFit:
+def joined(fits: list[SpectrumFit]) -> SpectrumFit:
     """The chunks' fits as one, spectra in order."""
+    if len(fits) == 1:
+        return fits[0]
     return SpectrumFit(
         params=SkinParams.from_tensor(torch.cat([f.params.as_tensor() for f in fits])),
         rms_residual=torch.cat([f.rms_residual for f in fits]),
@@ -165,19 +172,27 @@ def _joined(fits: list[SpectrumFit]) -> SpectrumFit:
         iterations=max(f.iterations for f in fits),
         converged=torch.cat([f.converged for f in fits]),
         fitted=torch.cat([f.fitted for f in fits]),
+        constants={n: torch.cat([f.constants[n] for f in fits]) for n in fits[0].constants},
+        freed=[names for f in fits for names in f.freed],
     )
 
 
+def specular_offset(model: SkinModel, included: bool) -> float:
+    """The smooth surface's first reflection F_r(8°) a measurement with the specular included carries
+    (an integrating sphere's SCI geometry), else 0."""
+    if not included:
+        return 0.0
+    o = model.settings.optics
+    return specular_reflectance(o.n_epidermis, o.n_above, cos_theta_i=math.cos(math.radians(8.0)))
+
+
 def _starts(y, wl, model: SkinModel, starts, free_scale: bool, specular_included: bool, tables: PointTables | None,
-            library: bool) -> tuple[_Problem, torch.Tensor]:
+            library: bool) -> tuple[BoxProblem, torch.Tensor]:
     """Every spectrum repeated once per start (its library entries first, where there are any), the
     unknowns scaled to the box, the model that predicts them and the one the iterations use."""
     lo, hi = parameter_bounds(y.dtype, y.device)
     span = hi - lo
-    offset = 0.0
-    if specular_included:
-        o = model.settings.optics
-        offset = specular_reflectance(o.n_epidermis, o.n_above, cos_theta_i=math.cos(math.radians(8.0)))
+    offset = specular_offset(model, specular_included)
     p0 = torch.tensor([[s[n] for n in PARAMETER_NAMES] for s in starts], dtype=y.dtype, device=y.device).reshape(-1, N_PARAMS)
     x = ((p0 - lo) / span)[None].expand(y.shape[0], -1, -1)  # (B, S, N_PARAMS) in [0, 1]
     log_g = torch.zeros(x.shape[:2] + (1,), dtype=y.dtype, device=y.device)
@@ -208,7 +223,7 @@ def _starts(y, wl, model: SkinModel, starts, free_scale: bool, specular_included
         return r + offset, jac
 
     iterate = tabulated if tables is not None else (lambda xv: forward_jacobian(predict, xv))
-    return _Problem(y.repeat_interleave(n_start, dim=0), box_lo, box_hi, predict, iterate, n_start), x
+    return BoxProblem(y.repeat_interleave(n_start, dim=0), box_lo, box_hi, predict, iterate, n_start), x
 
 
 def _library_start(y: torch.Tensor, tables: PointTables, free_scale: bool) -> tuple[torch.Tensor, torch.Tensor]:
@@ -229,7 +244,7 @@ def _library_start(y: torch.Tensor, tables: PointTables, free_scale: bool) -> tu
     return (grid[pick] - lo) / (hi - lo), torch.log(gain.gather(1, pick))
 
 
-def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: float, prune: bool = False):
+def solve_box(problem: BoxProblem, x: torch.Tensor, max_iterations: int, tolerance: float, prune: bool = False):
     """Projected LM on the box until every problem has converged: a variable resting on a bound with the
     gradient pushing outward is held there. Only problems not yet converged are evaluated. With
     ``prune``, after ``PRUNE_AFTER`` iterations a start whose cost is over ``PRUNE_FACTOR`` times its
@@ -278,7 +293,7 @@ def _solve(problem: _Problem, x: torch.Tensor, max_iterations: int, tolerance: f
     return x, cost, converged, iterations
 
 
-def _best(problem: _Problem, y, x, cost, converged, iterations: int, free_scale: bool) -> SpectrumFit:
+def _best(problem: BoxProblem, y, x, cost, converged, iterations: int, free_scale: bool) -> SpectrumFit:
     """Each spectrum's best start: its parameters, fitted spectrum, residual, scale and bounds reached."""
     n_spec, n_start = y.shape[0], problem.n_start
     pick = torch.arange(n_spec, device=y.device) * n_start + cost.reshape(n_spec, n_start).argmin(dim=1)

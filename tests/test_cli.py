@@ -54,12 +54,49 @@ def test_fit_spectrum_json(tmp_path, run_cli):
         assert 0 < s["rms_residual"] < 0.06
         assert isinstance(s["at_bound"], list)
     assert report["summary"]["samples"] == 101
-    code, out, _ = run_cli("fit-spectrum", str(small), "--json", "--method", "tables")
+    assert report["summary"]["model"] == "auto" and sum(report["summary"]["chosen"].values()) == 3
+    for s in report["spectra"]:  # the default weighs every candidate and says why the winner won
+        model = s["model"]
+        assert len(model["criterion"]) == 8 and model["why"]
+        winner = min(model["criterion"], key=model["criterion"].get)
+        assert winner == ("+".join(model["freed"]) or "fixed")
+        assert s["rms_residual"] == pytest.approx(model["rms_residual"][winner])
+        assert s["rms_residual"] <= model["rms_residual"]["fixed"]
+    code, out, _ = run_cli("fit-spectrum", str(small), "--json", "--model", "fixed")
+    fixed = json.loads(out)
+    code, out, _ = run_cli("fit-spectrum", str(small), "--json", "--model", "fixed", "--method", "tables")
     assert code == 0
     tabulated = json.loads(out)
     assert tabulated["summary"]["method"] == "tables"
-    for s, t in zip(report["spectra"], tabulated["spectra"]):
-        assert t["rms_residual"] == pytest.approx(s["rms_residual"], rel=0.01)
+    for s, f, t in zip(report["spectra"], fixed["spectra"], tabulated["spectra"]):
+        assert f["model"]["freed"] == [] and list(f["model"]["criterion"]) == ["fixed"]
+        assert f["rms_residual"] == pytest.approx(s["model"]["rms_residual"]["fixed"], rel=1e-9)
+        assert t["rms_residual"] == pytest.approx(f["rms_residual"], rel=0.01)
+    chosen = tmp_path / "model.yaml"
+    chosen.write_text("free: [dermis_scattering_ratio]\nfree_scale: true\n")
+    code, out, _ = run_cli("fit-spectrum", str(small), "--json", "--model", str(chosen))
+    assert code == 0
+    from_file = json.loads(out)
+    assert from_file["summary"]["free_scale"] and all(s["model"]["freed"] == ["dermis_scattering_ratio"]
+                                                       for s in from_file["spectra"])
+
+
+def test_fit_spectrum_with_transport_profiles_weighs_the_fixed_model_only(tmp_path, run_cli):
+    """Transport's totals are tabulated at the settings' constants: ``auto`` has one candidate, and a
+    model file that frees a constant is refused in one line."""
+    lines = NIST.read_text().splitlines()
+    small = tmp_path / "one.csv"
+    small.write_text("\n".join(",".join(line.split(",")[:2]) for line in lines if not line.startswith("#")) + "\n")
+    config = tmp_path / "transport.yaml"
+    config.write_text("profiles: transport\n")
+    code, out, _ = run_cli("fit-spectrum", str(small), "--json", "--config", str(config))
+    assert code == 0
+    entry = json.loads(out)["spectra"][0]
+    assert list(entry["model"]["criterion"]) == ["fixed"] and entry["model"]["freed"] == []
+    frees = tmp_path / "frees.yaml"
+    frees.write_text("free: [oxygenation_dermis]\n")
+    code, _, err = run_cli("fit-spectrum", str(small), "--config", str(config), "--model", str(frees))
+    assert code == 1 and "needs profiles: diffusion" in err and err.count("\n") == 1
 
 
 @pytest.mark.parametrize(
@@ -75,6 +112,8 @@ def test_fit_spectrum_json(tmp_path, run_cli):
         (["fit-spectrum", "/nonexistent/file.csv"], "cannot read"),
         (["fit-spectrum", str(NIST), "--range", "300:900"], "--range"),
         (["fit-spectrum", str(NIST), "--method", "fast"], "--method"),
+        (["fit-spectrum", str(NIST), "--model", "best"], "--model 'best'"),
+        (["fit-spectrum", str(NIST), "--noise", "0"], "--noise"),
     ],
 )
 def test_bad_input_one_clear_line(args, needle, run_cli):
