@@ -148,6 +148,13 @@ def fit_spectrum(
         console.print(f"figure: {plot}")
 
 
+#: ``reconstruct --model`` → the fit settings it sets (over --config's): DWRR08's fit is the renderer
+#: with every map per pixel and a free scale (§6.3–6.4).
+MAP_MODELS = {
+    "auto": {"forward": "auto"},
+    "fixed": {"forward": "heterogeneous"},
+    "paper": {"forward": "heterogeneous", "map_cell_mm": dict.fromkeys(PARAMETER_NAMES, 0.0), "free_scale": True},
+}
 #: Spectra the table shows; --json gives all.
 _TABLE_ROWS = 200
 #: The freed constants' names in the table.
@@ -245,6 +252,12 @@ def reconstruct(
     device: str = typer.Option("auto", "--device", help="cpu, cuda or auto (CUDA when available)."),
     method: Optional[str] = typer.Option(None, "--method", help="gn-hom (default), gn, adam or paper-fd (the paper's baseline)."),
     start: Optional[str] = typer.Option(None, "--start", help="homogeneous (default) or paper."),
+    model_choice: Optional[str] = typer.Option(
+        None, "--model",
+        help="auto (default): each pixel's homogeneous model where the renderer says the scene's cross-talk is below "
+             "the noise, else the renderer; fixed: always the renderer, maps on the settings' grids; paper: DWRR08's "
+             "fit (the renderer, every map per pixel, a free scale).",
+    ),
     force: bool = typer.Option(False, "--force", help="Overwrite the outputs of an earlier fit in the output folder."),
 ) -> None:
     """Fit chromophore maps to a reflectance cube by inverse rendering (DWRR08 §6.3).
@@ -258,7 +271,9 @@ def reconstruct(
 
     if device not in ("cpu", "cuda", "auto"):
         raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
-    settings = load_fit_settings(config, method=method, start=start)
+    if model_choice is not None and model_choice not in MAP_MODELS:
+        raise InputError(f"--model {model_choice!r}: choose one of {', '.join(MAP_MODELS)}")
+    settings = load_fit_settings(config, method=method, start=start, **MAP_MODELS.get(model_choice, {}))
     cube_path = resolve_cube_path(source)
     out_dir = out or default_reconstruction_dir(source, cube_path)
     check_outputs(out_dir, OUTPUT_NAMES, force=force, what="reconstruction")  # refused before any bar or work
@@ -281,6 +296,8 @@ def print_fit_summary(fit, settings) -> None:
         f"scale {fit.scale:.4f}, residual RMS {_visible_rms(fit):.4f}, {sum(level['iterations'] for level in fit.levels)} iterations, "
         f"{fit.wall_s:.1f} s"
     )
+    if fit.forward_choice:
+        console.print(f"forward model: {fit.forward_choice['chosen']} ({fit.forward_choice['reason']})")
     for note in fit.checks.notes:
         console.print(f"note: {note}")
     for what, source in (("camera angle", fit.view_angle_source), ("filter widths", fit.band_fwhm_source)):

@@ -67,6 +67,7 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
         "map_grids": fit.levels[-1]["map_grids"] if fit.levels else None,
         "maps_at_bound": fit.maps_at_bound,
         "grid_choice": fit.grid_choice,
+        "forward_choice": fit.forward_choice,
         "converged": all(level["converged"] for level in fit.levels),
         "iterations": sum(level["iterations"] for level in fit.levels),
         "levels": fit.levels,

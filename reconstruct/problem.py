@@ -45,7 +45,7 @@ from .grids import MapLayout
 from .least_squares import forward_jacobian
 from .unknowns import Level, extend, extension_index, params_of_rows, to_params
 
-__all__ = ["Evaluation", "LevelProblem", "OptimResult", "RenderCounter"]
+__all__ = ["Evaluation", "HomogeneousProblem", "LevelProblem", "OptimResult", "RenderCounter"]
 
 
 @dataclass
@@ -209,6 +209,14 @@ class LevelProblem:
         pred = self.at_pixels(image) * torch.exp(log_scale)
         return (pred - self.target) * self.row_weight
 
+    def homogeneous_image(self, x: torch.Tensor) -> torch.Tensor:
+        """Each pixel's homogeneous reflectance factor ``(L, H, W)`` of unknowns ``(N_PARAMS, H, W)``, band
+        corrected as the render is: what the renderer gives for uniform skin under uniform light."""
+        p = to_params(extend(x, self.index))
+        c, h, w = p.shape
+        r = self.renderer.model.diffuse_reflectance(SkinParams(*p.reshape(c, h * w).unbind(0)), self.wavelength_nm, method="tables")
+        return (r.T.reshape(-1, h, w) * self.exit).to(p.dtype) * self.band_correction(p)
+
     def homogeneous_jacobian(self, x_pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Homogeneous reflectance factor ``(N, L)`` of each pixel's unknowns ``x_pixels`` ``(N, N_PARAMS)``
         and its Jacobian ``(N, L, N_PARAMS)`` with respect to x (forward mode, one batched pass)."""
@@ -217,3 +225,19 @@ class LevelProblem:
             lambda xv: model.diffuse_reflectance(params_of_rows(xv), self.wavelength_nm, method="tables"), x_pixels.detach()
         )
         return (value * self.exit).to(x_pixels.dtype), (jac * self.exit).to(x_pixels.dtype)
+
+
+class HomogeneousProblem(LevelProblem):
+    """The same level with the per-pixel homogeneous forward model instead of the renderer: each
+    pixel's R_d (the model's Gaussian tables, as the renderer's) times the exit factor, times the
+    window's light factor ``light_factor`` ``(L, H, W)`` — a render of uniform skin over its
+    homogeneous value, which carries the window's dark edges but none of the neighbours' light — and
+    the band correction. No cross-talk between pixels and no render per evaluation: the model a
+    smooth scene needs, checked against a render before it is kept (``fidelity.py``)."""
+
+    def __init__(self, *args, light_factor: torch.Tensor, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.light_factor = light_factor
+
+    def render(self, x: torch.Tensor) -> torch.Tensor:
+        return self.homogeneous_image(x) * self.light_factor.to(x.dtype)

@@ -70,10 +70,11 @@ def plot_report(fit: MapFit, measured: torch.Tensor, path: str | Path) -> Path:
     axes[3, 6].set_title("flags (bit field)", fontsize=7)
     axes[3, 6].set_xticks([])
     axes[3, 6].set_yticks([])
-    fig.suptitle(
-        f"scale {fit.scale:.3f} · residual RMS {float(fit.residual_rms[~torch.from_numpy(masked)].pow(2).mean().sqrt()):.4f} · "
-        f"{fit.cpu_s:.1f} s CPU", fontsize=9,
-    )
+    title = (f"scale {fit.scale:.3f} · residual RMS {float(fit.residual_rms[~torch.from_numpy(masked)].pow(2).mean().sqrt()):.4f} · "
+             f"{fit.cpu_s:.1f} s CPU")
+    if fit.forward_choice:  # the forward model and why (reconstruct/fidelity.py)
+        title += f"\nforward model: {fit.forward_choice['chosen']} — {fit.forward_choice['reason']}"
+    fig.suptitle(title, fontsize=8)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -90,6 +90,15 @@ class FitSettings(Strict):
             "starting from map_cell_mm; the evidence goes into fit.json. gn-hom only."
         ),
     )
+    forward: Literal["auto", "heterogeneous", "homogeneous"] = Field(
+        "auto",
+        description=(
+            "The forward model: heterogeneous (the renderer, DWRR08 §4: every pixel lit by its neighbours), "
+            "homogeneous (each pixel's own model under the window's light: no cross-talk, no render per step), or auto: "
+            "the homogeneous fit first, kept where the renderer at its maps differs from it by at most half the cube's "
+            "noise, else the heterogeneous fit (reconstruct/fidelity.py; the evidence goes into fit.json)."
+        ),
+    )
     robust_passes: int = Field(
         1, ge=0, le=5,
         description=(

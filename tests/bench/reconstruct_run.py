@@ -24,7 +24,8 @@ import torch  # noqa: E402
 SYNTHETIC = Path(__file__).resolve().parents[1] / "reconstruct" / "synthetic_cubes.py"
 
 
-def _synthetic():
+def synthetic():
+    """The tests' ``synthetic_cubes`` module, loaded by path (test folders are not packages)."""
     spec = importlib.util.spec_from_file_location("skinlayers_tests_synthetic_cubes", SYNTHETIC)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
@@ -33,7 +34,7 @@ def _synthetic():
 
 
 def cube_for(cfg: dict):
-    sc = _synthetic()
+    sc = synthetic()
     key = f"cube_{cfg['size']}_{cfg['preset'].replace(' ', '_')}_s{cfg.get('seed', 0)}_n{cfg.get('noise', 1.0)}_{cfg.get('truth_blur', 'pyramid')}.pt"
     cache = cfg.get("cube_cache")
     if cache and (Path(cache) / key).exists():

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from skinlayers.acquire.scene import SkinScene, scene_from_dict
+from skinlayers.acquire.scene import SkinScene, VariationConfig, scene_from_dict
 from skinlayers.formats.cube import Cube, CubeHeader
 from skinlayers.model import ModelSettings
 from skinlayers.model.illumination import Light
@@ -59,15 +59,20 @@ class SyntheticCube:
     clean: torch.Tensor
 
 
-def scene_config(preset: str = "III interior", hairs: int = 0, seed_features: bool = True) -> dict:
-    """A small scene: smooth variation, two freckles, a scar, a vein; ``hairs`` dark hairs."""
-    return {
+def scene_config(preset: str = "III interior", hairs: int = 0, seed_features: bool = True, variation: float = 1.0) -> dict:
+    """A small scene: smooth variation (the scene's default amplitudes times ``variation``), two
+    freckles, a scar, a vein (unless ``seed_features`` is off); ``hairs`` dark hairs."""
+    config = {
         "base": {"preset": preset},
         "freckles": {"count": 2 if seed_features else 0, "radius_mm": [0.3, 0.5]},
         "scar": {"count": 1 if seed_features else 0},
         "veins": {"count": 1 if seed_features else 0},
         "hairs": {"count": hairs},
     }
+    if variation != 1.0:
+        defaults = VariationConfig()
+        config["variation"] = {k: getattr(defaults, k) * variation for k in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")}
+    return config
 
 
 def make_cube(
@@ -83,12 +88,15 @@ def make_cube(
     settings: ModelSettings | None = None,
     view_angle_deg: float = 30.0,
     blur: str = "fft",
+    features: bool = True,
+    variation: float = 1.0,
 ) -> SyntheticCube:
     """``blur="pyramid"`` for large cubes, where the FFT reference costs hours here (the fit's blur,
-    still at twice its resolution and with the band integration)."""
+    still at twice its resolution and with the band integration). ``features=False, variation=0``:
+    flat skin, a homogeneous patch."""
     settings = settings or ModelSettings()
     renderer = SkinRenderer(settings.model_copy(update={"render": settings.render.model_copy(update={"blur": blur})}))
-    scene = SkinScene(scene_from_dict(scene_config(preset, hairs)), seed=seed)
+    scene = SkinScene(scene_from_dict(scene_config(preset, hairs, features, variation)), seed=seed)
     n_fine = size_px * fine
     mm_fine = WINDOW_MM / n_fine
     margin = int(round(OCCLUDED_MM / mm_fine))

@@ -79,6 +79,10 @@ def test_reconstruct_a_session_writes_every_output(run, session):
     resolved = yaml.safe_load((out / "fit_settings.yaml").read_text())
     assert FitSettings.model_validate(resolved) == FitSettings(high_residual_factor=3.5, map_cell_mm={"C_bc": 0})
     assert summary["map_grids"]["C_bc"] == "pixel" and summary["map_grids"]["C_hd"] == "pixel"  # 24²: under two pixels
+    assert summary["forward_choice"]["setting"] == "auto" and summary["forward_choice"]["chosen"] == "heterogeneous"
+    assert summary["forward_choice"]["checks"][0]["crosstalk_rms"] > summary["forward_choice"]["checks"][0]["limit"]
+    assert [level["forward"] for level in summary["levels"]][-1] == "heterogeneous"
+    assert "forward model: heterogeneous" in result.output
     assert "maps:" in result.output and "report:" in result.output
     # a second run into the same folder is refused unless forced
     again = _invoke(["reconstruct", str(session), "--config", str(config)])
@@ -125,6 +129,20 @@ def test_cli_errors_are_one_line(tmp_path, capsys, monkeypatch):
     assert exit_info.value.code == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "missing.exr" in err and "\n" not in err
+
+
+def test_model_choices_set_the_fit(session, tmp_path):
+    """``--model paper`` is DWRR08's fit (the renderer, every map per pixel, a free scale), ``fixed`` the
+    renderer on the settings' grids; an unknown choice is one line."""
+    out = tmp_path / "paper"
+    result = _invoke(["reconstruct", str(session), "--model", "paper", "-o", str(out), "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "fit.json").read_text())
+    assert summary["settings"]["forward"] == "heterogeneous" and summary["settings"]["free_scale"] is True
+    assert set(summary["map_grids"].values()) == {"pixel"} and summary["forward_choice"] is None
+    assert load_fit_settings(None, forward="heterogeneous").forward == "heterogeneous"
+    bad = _invoke(["reconstruct", str(session), "--model", "best", "-o", str(tmp_path / "bad")])
+    assert bad.exit_code != 0 and "--model 'best'" in str(bad.exception or bad.output)
 
 
 def test_shipped_yaml_is_the_embedded_default():
