@@ -293,7 +293,7 @@ def print_fit_summary(fit, settings) -> None:
     flags = {k: int(v) for k, v in _flag_counts(fit).items() if v}
     console.print(
         f"fit {fit.residual_rms.shape[0]}×{fit.residual_rms.shape[1]} px, {fit.wavelength_nm.numel()} bands, method {settings.method}: "
-        f"scale {fit.scale:.4f}, residual RMS {_visible_rms(fit):.4f}, {sum(level['iterations'] for level in fit.levels)} iterations, "
+        f"scale {fit.scale:.4f}, residual RMS {_visible_rms(fit):.4f}, {sum(level['iterations'] for level in fit.kept_levels)} iterations, "
         f"{fit.wall_s:.1f} s"
     )
     if fit.forward_choice:

@@ -105,6 +105,13 @@ class MapFit:
     grid_choice: dict | None = None
     forward_choice: dict | None = None
 
+    @property
+    def kept_levels(self) -> list[dict]:
+        """The level records of the forward model whose maps were kept (``levels`` also holds the
+        homogeneous detour's where ``forward: auto`` fell back to the renderer)."""
+        kept = self.forward_choice["chosen"] if self.forward_choice else "heterogeneous"
+        return [level for level in self.levels if level.get("forward", kept) == kept]
+
 
 def view_angle_of(cube: Cube, settings: FitSettings) -> tuple[float, str]:
     """The camera angle: the settings', else the cube header's (the rig's), else DWRR08's 30°; and where it came from."""

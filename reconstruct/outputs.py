@@ -68,8 +68,8 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
         "maps_at_bound": fit.maps_at_bound,
         "grid_choice": fit.grid_choice,
         "forward_choice": fit.forward_choice,
-        "converged": all(level["converged"] for level in fit.levels),
-        "iterations": sum(level["iterations"] for level in fit.levels),
+        "converged": all(level["converged"] for level in fit.kept_levels),
+        "iterations": sum(level["iterations"] for level in fit.kept_levels),
         "levels": fit.levels,
         "time": {"cpu_s": round(fit.cpu_s, 3), "wall_s": round(fit.wall_s, 3), "renders": fit.counter.as_dict()},
         "data_checks": {

@@ -71,7 +71,7 @@ def main(cfg: dict) -> dict:
         "size": cfg["size"], "preset": cfg["preset"], "method": settings.method, "start": settings.start,
         "coarsest_px": settings.coarsest_px, "threads": torch.get_num_threads(),
         "cpu_s": fit.cpu_s, "wall_s": fit.wall_s, "renders": fit.counter.as_dict(),
-        "levels": [(lv["shape"][0], lv["iterations"], lv["converged"], lv["cpu_s"]) for lv in fit.levels],
+        "levels": [(lv["shape"][0], lv["iterations"], lv["converged"], lv["cpu_s"]) for lv in fit.kept_levels],
         "residual_rms": float(fit.residual[:, mask].pow(2).mean().sqrt()),
         "noise_rms": float(syn.noise[:, mask].pow(2).mean().sqrt()),
         "scale": fit.scale, "errors": errors,

@@ -89,4 +89,6 @@ def test_scene_with_features_keeps_the_renderer(small_cube, small_fit, small_fit
     fixed = fit_cube(small_cube.cube, FitSettings(**small_fit_settings, forward="heterogeneous"))
     for name in PARAMETER_NAMES:
         assert torch.equal(getattr(small_fit.maps, name), getattr(fixed.maps, name)), name
-    assert [lv["forward"] for lv in small_fit.levels if lv["forward"] == "heterogeneous"] == ["heterogeneous"] * len(fixed.levels)
+    assert [lv["forward"] for lv in small_fit.kept_levels] == ["heterogeneous"] * len(fixed.levels)
+    assert [lv["iterations"] for lv in small_fit.kept_levels] == [lv["iterations"] for lv in fixed.levels]
+    assert len(small_fit.levels) > len(small_fit.kept_levels)  # the detour's records are kept too
