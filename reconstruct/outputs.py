@@ -30,9 +30,15 @@ from .checks import FLAG_BITS
 from .fit import MapFit, fit_cube
 from .settings import FitSettings
 from .stats import correlations, pca_explained, residual_stats, trimmed_stats
+from .unknowns import near_bound
 
 __all__ = ["MARKER", "OUTPUT_NAMES", "fit_summary", "reconstruct_cube", "write_outputs"]
 
+#: A map resting at a bound of its range (``at_bound_fraction``) on at least this share of the visible
+#: pixels is reported undetermined in ``fit.json``: its value is the bound's, and its σ (the noise's
+#: share of a free parameter's error) says nothing of its error (the demo's carotene: fitted 7.5e-6
+#: against 8e-5, σ 36% of the value, at its lower bound on every pixel).
+UNDETERMINED_AT_BOUND_SHARE = 0.5
 #: What a fit writes; ``fit.json`` last: its presence marks a complete reconstruction.
 MARKER = "fit.json"
 OUTPUT_NAMES = ("maps.exr", "fit_settings.yaml", "report.png", MARKER)
@@ -47,9 +53,16 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
     used = [bool(u) for u in fit.checks.bands_used.tolist()]
     flags = {name: int(((fit.flags >> bit) & 1).sum()) for name, bit in FLAG_BITS.items()}
     per_param = {}
+    at_bound = near_bound(params, settings.at_bound_fraction)  # (N_PARAMS, visible pixels)
     for i, n in enumerate(PARAMETER_NAMES):
         entry = trimmed_stats(params[i])
         entry["sigma_median"] = float(sigma[i].median())
+        share = float(at_bound[i].double().mean()) if at_bound.shape[1] else 0.0
+        entry["determined"] = share < UNDETERMINED_AT_BOUND_SHARE
+        if not entry["determined"]:
+            entry["undetermined_because"] = (
+                f"it rests at a bound of its range on {share:.0%} of the pixels: the data push it past the model's range, "
+                "so the value is the bound's and sigma does not describe its error")
         per_param[n] = entry
     return {
         "software_version": software_version(),

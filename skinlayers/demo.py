@@ -86,6 +86,7 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
             "median_error": float(value), "error_kind": "relative" if relative else "absolute",
             "truth_median": float(t[keep].median()), "fit_median": float(f[keep].median()),
             "sigma_median": float(np.nanmedian(np.asarray(sigma)[keep.numpy()])) if sigma is not None else None,
+            "determined": summary["parameters"][name].get("determined", True),
         }
     cube_channels, _ = read_exr(cube)
     truth_r, _ = read_exr(session / "truth" / "reflectance.exr")
@@ -258,6 +259,8 @@ def _print_accuracy(accuracy: dict) -> None:
     for name, p in accuracy["parameters"].items():
         error = f"{100 * p['median_error']:.1f}%" if p["error_kind"] == "relative" else f"{p['median_error']:.3f}"
         sigma = "" if p["sigma_median"] is None else f"{p['sigma_median']:.3g}"
+        if not p.get("determined", True):
+            sigma = "undetermined (at a bound)"
         table.add_row(name, f"{p['truth_median']:.4g}", f"{p['fit_median']:.4g}", error, sigma)
     console = Console()
     console.print(table)

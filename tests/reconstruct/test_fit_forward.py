@@ -92,3 +92,24 @@ def test_scene_with_features_keeps_the_renderer(small_cube, small_fit, small_fit
     assert [lv["forward"] for lv in small_fit.kept_levels] == ["heterogeneous"] * len(fixed.levels)
     assert [lv["iterations"] for lv in small_fit.kept_levels] == [lv["iterations"] for lv in fixed.levels]
     assert len(small_fit.levels) > len(small_fit.kept_levels)  # the detour's records are kept too
+
+
+def test_a_map_at_its_bound_is_reported_undetermined(small_fit, small_fit_settings):
+    """fit.json says which maps the data determined: a map resting at a bound of its range on most
+    pixels is undetermined, with the reason, whatever its σ says."""
+    import dataclasses
+
+    from skinlayers.model.maps import SkinMaps
+    from skinlayers.reconstruct.outputs import fit_summary
+
+    settings = FitSettings(**small_fit_settings)
+    summary = fit_summary(small_fit, settings)
+    free = [n for n in PARAMETER_NAMES if summary["parameters"][n]["determined"]]
+    assert free, summary["parameters"]
+    maps = {n: getattr(small_fit.maps, n) for n in PARAMETER_NAMES}
+    maps["C_bc"] = torch.zeros_like(maps["C_bc"])  # carotene driven to its lower bound everywhere
+    pinned = dataclasses.replace(small_fit, maps=SkinMaps(**maps, mm_per_pixel=small_fit.maps.mm_per_pixel))
+    entry = fit_summary(pinned, settings)["parameters"]["C_bc"]
+    assert entry["determined"] is False and "rests at a bound" in entry["undetermined_because"]
+    assert all(fit_summary(pinned, settings)["parameters"][n]["determined"] == summary["parameters"][n]["determined"]
+               for n in PARAMETER_NAMES if n != "C_bc")
