@@ -260,7 +260,7 @@ def _print_accuracy(accuracy: dict) -> None:
         error = f"{100 * p['median_error']:.1f}%" if p["error_kind"] == "relative" else f"{p['median_error']:.3f}"
         sigma = "" if p["sigma_median"] is None else f"{p['sigma_median']:.3g}"
         if not p.get("determined", True):
-            sigma = "undetermined (at a bound)"
+            sigma = "undetermined"
         table.add_row(name, f"{p['truth_median']:.4g}", f"{p['fit_median']:.4g}", error, sigma)
     console = Console()
     console.print(table)
