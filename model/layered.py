@@ -162,11 +162,16 @@ class SkinModel:
         k_per_mm: torch.Tensor | None = None,
         method: str = "exact",
         spectra: ChromophoreSpectra | None = None,
+        thickness_mm: torch.Tensor | None = None,
     ) -> LayerTransforms:
         """The layers' totals or transforms at given absorption, each ``(..., L)``: at one band they
         depend on the two layers' σa and the interface absorbance alone (scattering, thickness and
-        indices are the settings'), which is what lets ``point_tables`` tabulate them."""
+        indices are the settings'), which is what lets ``point_tables`` tabulate them. ``spectra`` may
+        carry other scattering (``point_model``); ``thickness_mm`` ``(..., 1)`` replaces the
+        epidermis's thickness per element, for the exact diffusion totals only."""
         o = self.settings.optics
+        if thickness_mm is not None and (method != "exact" or k_per_mm is not None or self.settings.profiles != "diffusion"):
+            raise ValueError("a per-element epidermis thickness needs the exact diffusion totals (profiles: diffusion)")
         spectra = spectra if spectra is not None else self.spectra(wavelength_nm)
         ab = LayerAbsorption(sigma_a_epidermis_per_mm, sigma_a_dermis_per_mm, interface_absorbance)
         attenuation = torch.exp(-interface_absorbance)
@@ -174,7 +179,7 @@ class SkinModel:
         s_epi = spectra.scattering_epidermis.to(ab.epidermis)
         s_derm = spectra.scattering_dermis.to(ab.epidermis)
         transport = self.settings.profiles == "transport"
-        d = o.epidermis_thickness_mm
+        d = o.epidermis_thickness_mm if thickness_mm is None else thickness_mm
         if method == "exact" and transport:
             # transport: adding-doubling's totals, the Monte Carlo's shapes (model/layer_shapes.py)
             tt = layer_totals(ab.epidermis, s_epi, d, ab.dermis, s_derm, o.n_above, o.n_epidermis, o.n_dermis,

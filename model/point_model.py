@@ -14,13 +14,11 @@ Shapes: parameters and constants ``(B,)``, wavelengths ``(L,)`` → spectra ``(B
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import torch
 
-from .layered import SkinModel, combine_layers, LayerTransforms
+from .layered import SkinModel, combine_layers
 from .params import SkinParams, layer_absorption
-from .profiles import multipole_totals
 from .radiometry import entry_transmittance
 
 __all__ = ["CONSTANT_BOUNDS", "CONSTANT_NAMES", "constant_bounds", "constant_defaults", "point_reflectance"]
@@ -86,11 +84,9 @@ def point_reflectance(
     if "dermis_scattering_ratio" in column:
         spectra = dataclasses.replace(
             spectra, scattering_dermis=column["dermis_scattering_ratio"] * spectra.scattering_epidermis)
-    thickness = column.get("epidermis_thickness_mm", o.epidermis_thickness_mm)
-    ab = layer_absorption(params, spectra, o.interface_melanin_fraction, thickness)
-    eta_top, eta_mid, eta_derm = model._etas()
-    epi = multipole_totals(ab.epidermis, spectra.scattering_epidermis, thickness, eta_top, eta_mid,
-                           source_depth=o.source_depth)
-    r2 = multipole_totals(ab.dermis, spectra.scattering_dermis, math.inf, eta_derm, 1.0).R_plus
-    combined = combine_layers(LayerTransforms(*epi, r2, torch.exp(-ab.interface_absorbance)))
-    return entry_transmittance(o.n_epidermis, o.n_above) * combined
+    thickness = column.get("epidermis_thickness_mm")
+    ab = layer_absorption(params, spectra, o.interface_melanin_fraction,
+                          o.epidermis_thickness_mm if thickness is None else thickness)
+    totals = model.transforms_at(ab.epidermis, ab.dermis, ab.interface_absorbance, wavelength_nm, None, "exact", spectra,
+                                 thickness_mm=thickness)
+    return entry_transmittance(o.n_epidermis, o.n_above) * combine_layers(totals)

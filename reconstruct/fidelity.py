@@ -26,10 +26,8 @@ import torch
 from ..model import N_PARAMS
 from .problem import Evaluation, HomogeneousProblem, LevelProblem
 
-__all__ = ["CROSSTALK_LIMIT", "FORWARD_CHOICES", "CrossTalkCheck", "ForwardChoice", "crosstalk_check", "window_light_factor"]
+__all__ = ["CROSSTALK_LIMIT", "CrossTalkCheck", "ForwardChoice", "crosstalk_check", "window_light_factor"]
 
-#: ``FitSettings.forward``: choose per cube, or always one model.
-FORWARD_CHOICES = ("auto", "heterogeneous", "homogeneous")
 #: The homogeneous fit is kept where the renderer at its maps differs from it by at most this RMS, in
 #: units of each band's noise σ: the left-out cross-talk then adds at most 0.5² = a quarter to the
 #: noise's variance.

@@ -176,8 +176,7 @@ def fit_cube(
         kw = dict(view_angle_deg=view, border_mm=settings.border_mm, band_fwhm_nm=fwhm, map_cell_mm=cells, counter=counter)
         if light_factor is None:
             return LevelProblem(renderer, level, wl, checks.bands_used, **kw)
-        factor = F.interpolate(light_factor[None], size=level.shape, mode="bilinear", align_corners=False)[0]
-        return HomogeneousProblem(renderer, level, wl, checks.bands_used, light_factor=factor, **kw)
+        return HomogeneousProblem(renderer, level, wl, checks.bands_used, light_factor=light_factor, **kw)
 
     def noise_at(level) -> torch.Tensor:  # the cube's own per band (L,); each 2×2 mean halves white noise's σ
         return band_noise(target, checks.fit_mask.to(dev)) * (cube.mm_per_pixel / level.mm_per_pixel)
