@@ -298,6 +298,12 @@ def print_fit_summary(fit, settings) -> None:
     )
     if fit.forward_choice:
         console.print(f"forward model: {fit.forward_choice['chosen']} ({fit.forward_choice['reason']})")
+    if fit.absorbers:
+        console.print(f"absorbers: {fit.absorbers['reason']}")
+    if fit.uncertainty and fit.uncertainty.get("crosstalk_measured"):
+        rho = ", ".join(f"{n} {v:.2f}" for n, v in fit.uncertainty["crosstalk_ratio"].items())
+        console.print(f"sigma: the noise's share widened by each map's own-pixel response (cross-talk ratio {rho}), the nodes' "
+                      "by the residual's correlation in space and the spread between them")
     for note in fit.checks.notes:
         console.print(f"note: {note}")
     for what, source in (("camera angle", fit.view_angle_source), ("filter widths", fit.band_fwhm_source)):

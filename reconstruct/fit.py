@@ -5,12 +5,13 @@
 (``optimizers.METHODS``) on every level, upsampling the unknowns between levels, and returns the maps,
 the scale, the fitted image, residuals, per-pixel flags and uncertainties.
 
-Uncertainty. At the end point the per-pixel covariance of the parameters is the Gauss–Newton sandwich
-Aₚ⁻¹ (Jₚᵀ Σ Jₚ) Aₚ⁻¹ with Jₚ the pixel's Jacobian with respect to its parameters (homogeneous model ×
-light factor × scale, as in ``gauss_newton.py``), Aₚ = JₚᵀJₚ and Σ = diag(σ_λ²) the residual variance
-of each band over all loss pixels (degrees of freedom L − N_PARAMS per pixel). Cross-talk is left out of Jₚ:
-the neighbours' share of a pixel's signal makes the true per-pixel uncertainty of fine detail larger
-than this, not smaller.
+Uncertainty. At the end point the noise's share of each pixel's covariance is the Gauss–Newton
+sandwich Aₚ⁻¹ (Jₚᵀ Σ Jₚ) Aₚ⁻¹ (every map per pixel) or the inverse Fisher information of the whole fit
+with the nodes' cluster-robust variance (maps on nodes, ``schur.marginal_variance``), Jₚ each pixel's
+homogeneous Jacobian × light factor × scale and Σ = diag(σ_λ²) each band's residual variance
+(``sigma_noise``). ``sigma`` widens it by what that leaves out, measured on the cube where it can be
+(the cross-talk, the variation finer than the nodes) and on simulated sessions where it cannot (the
+model's own error): ``uncertainty.py``.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from ..model import N_PARAMS, PARAMETER_NAMES
 from ..model.maps import SkinMaps
 from ..formats.resources import require_memory
 from ..model.renderer import SkinRenderer, render_bytes
+from .absorbers import AbsorberFit, candidate_rows, fit_grey_absorbance
 from .checks import DataChecks, check_cube, flag_value
 from .fidelity import ForwardChoice, crosstalk_check, window_light_factor
 from .gauss_newton import curvature_and_columns, level_step
@@ -38,6 +40,7 @@ from .problem import HomogeneousProblem, LevelProblem, RenderCounter
 from .schur import marginal_variance
 from .settings import FitSettings
 from .start import STARTS
+from .uncertainty import MODEL_FLOOR, MODEL_FLOOR_ABSOLUTE, crosstalk_ratio, model_floor, subnode_sd
 from .unknowns import dparams_dx, extend, near_bound, pyramid, to_params, upsample
 
 __all__ = ["DEFAULT_BAND_FWHM_NM", "DEFAULT_VIEW_ANGLE_DEG", "FitEvent", "MapFit", "band_fwhm_of", "fit_cube", "view_angle_of"]
@@ -50,6 +53,9 @@ LIGHT_FACTOR_PASSES = 3
 #: Where neither the settings nor the cube's header say: DWRR08 §6.1's camera, 30° off the flash axis,
 #: and its 10-nm band-pass filters.
 DEFAULT_VIEW_ANGLE_DEG = 30.0
+#: The nodes' cluster-robust variance (``schur.marginal_variance``) sums the residual's pull over squares
+#: of this side: about the light's spread in red, the scale on which the model's error is correlated.
+CLUSTER_MM = 1.0
 DEFAULT_BAND_FWHM_NM = 10.0
 
 
@@ -74,7 +80,10 @@ Progress = Callable[[FitEvent], None]
 class MapFit:
     """The result on the cube's grid. Maps ``(1, H, W)``; ``image`` and ``residual`` ``(L, H, W)``
     (scaled prediction and prediction − measurement, all bands); ``residual_rms`` ``(H, W)`` over the
-    used bands; ``flags`` ``(H, W)`` int bit field (``checks.FLAG_BITS``); ``sigma`` ``(N_PARAMS, H, W)``;
+    used bands; ``flags`` ``(H, W)`` int bit field (``checks.FLAG_BITS``); ``sigma`` ``(N_PARAMS, H, W)`` the
+    uncertainty (``uncertainty.py``: the noise's share widened by the cross-talk and the variation finer
+    than the nodes), ``sigma_noise`` the noise's share alone; ``uncertainty`` what the widening measured;
+    ``absorbers`` what the absorber step found (``absorbers.py``);
     ``band_fwhm_nm`` ``(L,)`` each band's filter width as fitted, ``band_fwhm_source`` where it came from;
     ``history``: (CPU s, loss, level) after every accepted step of every pass (a robust pass lowers its
     own, weighted loss); ``maps_at_bound``: each map on nodes that rests at a bound somewhere, with the
@@ -90,6 +99,7 @@ class MapFit:
     residual_rms: torch.Tensor
     flags: torch.Tensor
     sigma: torch.Tensor
+    sigma_noise: torch.Tensor
     checks: DataChecks
     wavelength_nm: torch.Tensor
     view_angle_deg: float
@@ -104,6 +114,8 @@ class MapFit:
     maps_at_bound: dict[str, float] = field(default_factory=dict)
     grid_choice: dict | None = None
     forward_choice: dict | None = None
+    absorbers: dict | None = None
+    uncertainty: dict | None = None
 
     @property
     def kept_levels(self) -> list[dict]:
@@ -228,15 +240,40 @@ def fit_cube(
     else:
         problem = level_problem(levels[-1], cells)
         x, log_scale = result.x, result.log_scale
+    absorber = None
+    if settings.absorbers == "auto":
+        absorber, result = _absorber_fit(problem, result, len(levels) - 1, noise_at, settings, forward, fit_level)
+        x, log_scale = extend(result.x, problem.index), result.log_scale
     say(FitEvent("final", len(levels) - 1, len(levels), pixels=pixels))
-    out = _finish(problem, result, x, log_scale, checks, settings, cube.mm_per_pixel)
+    renderer_fit = forward is None or forward.chosen == "heterogeneous"
+    out = _finish(problem, result, x, log_scale, checks, settings, cube.mm_per_pixel, renderer_fit)
     return MapFit(
         **out, checks=checks, wavelength_nm=wl, view_angle_deg=view, view_angle_source=view_source, band_fwhm_nm=fwhm,
         band_fwhm_source=fwhm_source, levels=records,
         counter=counter, cpu_s=time.process_time() - cpu0, wall_s=time.perf_counter() - wall0, history=history,
         grid_choice=choice.as_dict() if choice else None,
         forward_choice=forward.as_dict() if forward else None,
+        absorbers=absorber.as_dict() if absorber else None,
     )
+
+
+def _absorber_fit(problem: LevelProblem, result: OptimResult, i: int, noise_at, settings: FitSettings,
+                  forward: ForwardChoice | None, fit_level) -> tuple[AbsorberFit | None, OptimResult]:
+    """The grey absorbance where the finest level's residual asks for it (``absorbers.py``), and the finest
+    level refitted with it held; ``result`` unchanged where nothing was kept."""
+    shape = problem.level.shape
+    nothing = lambda why: AbsorberFit(torch.zeros(shape), 0, 0, math.nan, math.nan, math.nan, 0, why)  # noqa: E731
+    if forward is not None and forward.chosen != "heterogeneous":
+        return nothing("not considered: the homogeneous model was kept (no neighbour's shading stood out)"), result
+    try:
+        noise = noise_at(problem.level)
+    except ValueError as err:
+        return nothing(f"not considered: the cube's noise cannot be measured ({err})"), result
+    candidates = candidate_rows(problem, pixel_rms(problem, result.evaluation), settings.high_residual_factor)
+    found, x = fit_grey_absorbance(problem, result.x, result.log_scale, noise, candidates)
+    if not found.kept:
+        return found, result
+    return found, fit_level(i, problem, x, result.log_scale, "heterogeneous")
 
 
 def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting: str, level_problem, noise_at, fit_level):
@@ -341,8 +378,10 @@ def _level_record(problem: LevelProblem, result: OptimResult, passes: list[int],
     }
 
 
-def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: DataChecks, settings: FitSettings, mm: float) -> dict:
-    """Residuals, flags and uncertainties on the finest grid."""
+def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: DataChecks, settings: FitSettings, mm: float,
+            renderer_fit: bool = True) -> dict:
+    """Residuals, flags and uncertainties on the finest grid (σ widened by ``uncertainty.py``: the
+    cross-talk where the renderer's fit was kept, the variation finer than the nodes)."""
     ev = result.evaluation
     scale = torch.exp(log_scale)
     image = ev.image * scale
@@ -351,6 +390,10 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     residual_rms = torch.sqrt((residual[used] ** 2).mean(0))
     p = to_params(x)
     maps = SkinMaps(*(v[None] for v in p.unbind(0)), mm_per_pixel=mm)
+    if problem.absorbance is not None:  # the grey absorbance at every band the cube has
+        bands = problem.wavelength_nm.numel()
+        maps = maps.replace(absorbance=problem.absorbance[None, None].expand(1, bands, -1, -1).contiguous(),
+                            absorbance_wavelength_nm=problem.wavelength_nm.clone())
 
     jac, col = curvature_and_columns(problem, ev)
     lam = torch.full((problem.n_pixels,), 1e-3, dtype=jac.dtype, device=jac.device)
@@ -364,6 +407,8 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
         sigma_pix = _sigma(problem, jac, plain, x)
     else:
         sigma_pix = _sigma_shared(problem, jac, col, plain, x, settings.free_scale)
+    sigma_noise = sigma_pix
+    sigma_pix, widening = _widened(problem, ev, jac, plain, x, sigma_pix, renderer_fit)
     # not converged: the optimiser stopped at its iteration cap and the step it still proposes moves one
     # of the pixel's own maps by more than half its uncertainty. (After a passed convergence test the
     # proposed gn-hom step is no measure: it points at the fixed point of the approximate Jacobian, not
@@ -393,9 +438,36 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
         flags |= flag_value("band_excluded")
     sigma = torch.full((N_PARAMS, h * w), float("nan"), dtype=x.dtype, device=x.device)
     sigma[:, problem.pixels] = sigma_pix.T.to(x.dtype)
+    noise_sigma = torch.full_like(sigma, float("nan"))
+    noise_sigma[:, problem.pixels] = sigma_noise.T.to(x.dtype)
     return {
         "maps": maps, "scale": float(scale), "image": image, "residual": residual, "residual_rms": residual_rms,
-        "flags": flags.reshape(h, w), "sigma": sigma.reshape(N_PARAMS, h, w), "maps_at_bound": nodes_at_bound,
+        "flags": flags.reshape(h, w), "sigma": sigma.reshape(N_PARAMS, h, w),
+        "sigma_noise": noise_sigma.reshape(N_PARAMS, h, w), "maps_at_bound": nodes_at_bound,
+        "uncertainty": {**widening, "noise_sigma_median": {n: float(sigma_noise[:, k].median()) for k, n in enumerate(PARAMETER_NAMES)}},
+    }
+
+
+def _widened(problem: LevelProblem, ev, jac, residual, x, sigma_pix, renderer_fit: bool) -> tuple[torch.Tensor, dict]:
+    """σ ``(N, N_PARAMS)`` with the two terms ``uncertainty.py`` measures on the cube, and what they were."""
+    used = problem.band_weight > 0
+    n_used = int(used.sum())
+    n_unknowns = len(problem.layout.fine) * problem.n_pixels + problem.layout.n_nodes
+    dof = max(n_used * problem.n_pixels - n_unknowns, 1) / (n_used * problem.n_pixels)
+    sd_band = torch.sqrt((residual.double() ** 2).mean(0) / dof).clamp_min(1e-12)
+    rho = crosstalk_ratio(problem, ev, jac) if renderer_fit else torch.ones(N_PARAMS, dtype=torch.float64, device=jac.device)
+    dpdx = problem.at_pixels(dparams_dx(x)).double()
+    spread = subnode_sd(problem, jac, residual, sd_band, rho, dpdx)
+    widen = torch.ones(N_PARAMS, dtype=torch.float64, device=jac.device)
+    widen[problem.layout.fine] = 1.0 / rho[problem.layout.fine]
+    floor = model_floor(problem.at_pixels(to_params(x)))
+    total = torch.sqrt((sigma_pix.double() * widen) ** 2 + spread**2 + floor**2)
+    return total.to(sigma_pix.dtype), {
+        "crosstalk_ratio": {n: float(rho[k]) for k, n in enumerate(PARAMETER_NAMES)},
+        "crosstalk_measured": renderer_fit,
+        "subnode_sd_median": {PARAMETER_NAMES[k]: float(spread[:, k].median()) for k in problem.layout.coarse},
+        "model_floor": dict(MODEL_FLOOR),
+        "model_floor_relative_to_value": [n for n in PARAMETER_NAMES if n not in MODEL_FLOOR_ABSOLUTE],
     }
 
 
@@ -409,7 +481,12 @@ def _sigma_shared(problem: LevelProblem, jac, col, residual, x, free_scale: bool
     dof = max(n_used * problem.n_pixels - n_unknowns, 1) / (n_used * problem.n_pixels)
     sd_band = torch.sqrt((residual.double() ** 2).mean(0) / dof).clamp_min(1e-12)
     weight = torch.where(used, 1.0 / sd_band, torch.zeros_like(sd_band))
-    var = marginal_variance(jac.double() * weight[None, :, None], col.double() * weight[None, :], free_scale, problem.layout, problem.pixels)
+    h, w = problem.level.shape
+    cell = max(int(round(CLUSTER_MM / problem.level.mm_per_pixel)), 1)
+    rows, cols = problem.pixels // w, problem.pixels % w
+    clusters = (rows // cell) * (w // cell + 1) + cols // cell
+    var = marginal_variance(jac.double() * weight[None, :, None], col.double() * weight[None, :], free_scale, problem.layout,
+                            problem.pixels, residual.double() * weight[None, :], clusters)
     return var.sqrt() * problem.at_pixels(dparams_dx(x)).double()
 
 

@@ -81,6 +81,8 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
         "maps_at_bound": fit.maps_at_bound,
         "grid_choice": fit.grid_choice,
         "forward_choice": fit.forward_choice,
+        "absorbers": fit.absorbers,
+        "uncertainty": fit.uncertainty,
         "converged": all(level["converged"] for level in fit.kept_levels),
         "iterations": sum(level["iterations"] for level in fit.kept_levels),
         "levels": fit.levels,
@@ -124,6 +126,7 @@ def write_outputs(fit: MapFit, settings: FitSettings, out_dir: str | Path, sourc
         extra[f"res_{w:g}"] = fit.residual[j]
     for i, n in enumerate(PARAMETER_NAMES):
         extra[f"sigma_{n}"] = fit.sigma[i]
+        extra[f"sigma_noise_{n}"] = fit.sigma_noise[i]
     maps_path = write_maps(
         out / "maps.exr", fit.maps.to(device="cpu"), {k: v.detach().cpu() for k, v in extra.items()},
         {"wavelengths_nm": [float(w) for w in fit.wavelength_nm], "scale": float(fit.scale), "method": settings.method,

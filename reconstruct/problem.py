@@ -131,6 +131,8 @@ class LevelProblem:
         self.layout = MapLayout(level.shape, level.mm_per_pixel, map_cell_mm, level.target.dtype, level.target.device)
         #: robust weight of each loss pixel ``(N,)`` (None: all 1), set between passes by ``fit.fit_cube``
         self.pixel_weight: torch.Tensor | None = None
+        #: grey interface absorbance P ``(H, W)`` the render adds (hairs; ``absorbers.py``), None: none
+        self.absorbance: torch.Tensor | None = None
         self.band_weight = bands_used.to(level.target.dtype).to(level.target.device)
         self.target = level.target.reshape(level.target.shape[0], -1)[:, self.pixels].T.contiguous()  # (N, L)
         self.counter = counter or RenderCounter()
@@ -165,6 +167,9 @@ class LevelProblem:
         """Unscaled band reflectance factor ``(L, H, W)`` of unknowns ``(N_PARAMS, H, W)`` (differentiable)."""
         p = to_params(extend(x, self.index))
         maps = SkinMaps(*(v[None] for v in p.unbind(0)), mm_per_pixel=self.level.mm_per_pixel)
+        if self.absorbance is not None:  # grey: one band stands for every wavelength (held at the ends)
+            maps = maps.replace(absorbance=self.absorbance.to(x.dtype)[None, None],
+                                absorbance_wavelength_nm=self.wavelength_nm[:1])
         out = self.renderer.render(
             maps, self.light, self.wavelength_nm, under_gel=True, light_angle_deg=0.0, view_angle_deg=self.view_angle_deg
         )

@@ -94,10 +94,17 @@ def solve_split_step(
     return dx.to(dtype), step[: layout.n_nodes].to(dtype), ds.to(dtype), float(-(rhs * step).sum())
 
 
-def marginal_variance(jac: torch.Tensor, col: torch.Tensor, free_scale: bool, layout: MapLayout, pixels: torch.Tensor) -> torch.Tensor:
+def marginal_variance(jac: torch.Tensor, col: torch.Tensor, free_scale: bool, layout: MapLayout, pixels: torch.Tensor,
+                      residual: torch.Tensor | None = None, clusters: torch.Tensor | None = None) -> torch.Tensor:
     """Variance of every pixel's unknowns in x ``(N, N_PARAMS)`` from whitened ``jac`` ``(N, L, N_PARAMS)`` and
     ``col`` ``(N, L)`` (rows divided by each band's noise σ): the inverse Fisher information with every
-    other unknown, shared ones included, free."""
+    other unknown, shared ones included, free.
+
+    With the whitened ``residual`` ``(N, L)`` and a cluster label per pixel ``clusters`` ``(N,)``, the
+    shared unknowns' covariance is the larger (per node) of that and the cluster-robust sandwich
+    S⁻¹ (Σ_c u_c u_cᵀ) S⁻¹, u_c the reduced score Σ_{p∈c} (G_p − J_f,p X_p)ᵀ r_p of a cluster's pixels
+    (Liang & Zeger 1986): where the residual is correlated in space (model error, not the camera's
+    white noise) a node's hundreds of pixels are worth far fewer independent ones."""
     n = jac.shape[0]
     nc = len(layout.coarse)
     jf, g, idx, wts = _local_columns(jac.double(), col.double(), layout, pixels, free_scale)
@@ -105,6 +112,15 @@ def marginal_variance(jac: torch.Tensor, col: torch.Tensor, free_scale: bool, la
     factor, _, x, s = _reduced(jf, g, idx, size, 0.0)
     d = torch.diagonal(s).clamp_min(1e-300).sqrt()
     cov = torch.linalg.pinv(s / (d[:, None] * d[None, :]), hermitian=True) / (d[:, None] * d[None, :])
+    if residual is not None and clusters is not None:
+        score = ((g - jf @ x).transpose(1, 2) @ residual.double()[..., None])[..., 0]  # (N, m)
+        labels, cluster = torch.unique(clusters, return_inverse=True)
+        u = torch.zeros(labels.numel() * size, dtype=torch.float64, device=jac.device)
+        u.index_add_(0, (cluster[:, None] * size + idx).reshape(-1), score.reshape(-1))
+        u = u.reshape(labels.numel(), size)
+        robust = cov @ (u.T @ u) @ cov
+        scale = torch.sqrt((torch.diagonal(robust) / torch.diagonal(cov).clamp_min(1e-300)).clamp_min(1.0))
+        cov = cov * scale[:, None] * scale[None, :]  # each node's variance the larger, correlations kept
     local = cov[idx[:, :, None], idx[:, None, :]]  # (N, m, m)
     var = torch.empty(n, N_PARAMS, dtype=torch.float64, device=jac.device)
     eye = torch.eye(len(layout.fine), dtype=torch.float64, device=jac.device).expand(n, -1, -1)

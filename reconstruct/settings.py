@@ -99,6 +99,15 @@ class FitSettings(Strict):
             "noise, else the heterogeneous fit (reconstruct/fidelity.py; the evidence goes into fit.json)."
         ),
     )
+    absorbers: Literal["auto", "none"] = Field(
+        "none",
+        description=(
+            "auto: after the finest level, a grey interface absorbance (DWRR08 §4.2's thin layer) is fitted on the "
+            "pixels whose residual stands out (hairs), kept per pixel where it lowers that pixel's chi2 by more than "
+            "ln n (BIC, the cube's noise known), and the maps refitted with it (reconstruct/absorbers.py); none: never. "
+            "The renderer's fit only (the homogeneous model holds no neighbour to shade)."
+        ),
+    )
     robust_passes: int = Field(
         1, ge=0, le=5,
         description=(

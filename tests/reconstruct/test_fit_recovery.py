@@ -87,31 +87,40 @@ def test_paper_start_converges_to_the_same_maps(small_cube, small_fit, small_fit
     assert abs(paper.scale - small_fit.scale) < 0.005
 
 
-def _median_z(fit, reference, keep, names=("C_m", "beta_m", "C_he", "C_hd")) -> dict[str, float]:
+def _median_z(fit, reference, keep, names=("C_m", "beta_m", "C_he", "C_hd"), sigma: str = "sigma") -> dict[str, float]:
     out = {}
     for n in names:
         k = PARAMETER_NAMES.index(n)
-        z = (getattr(fit.maps, n)[0][keep] - getattr(reference, n)[0][keep]).abs() / fit.sigma[k][keep]
+        z = (getattr(fit.maps, n)[0][keep] - getattr(reference, n)[0][keep]).abs() / getattr(fit, sigma)[k][keep]
         out[n] = float(z.median())
     return out
 
 
 def test_uncertainty_is_the_noise_share_of_the_error(small_cube, small_fit, small_fit_settings):
-    """σ describes what the noise does: |fit − fit of the noise-free cube| / σ has a median near 0.67
+    """σ_noise describes what the noise does: |fit − fit of the noise-free cube| / σ has a median near 0.67
     (Gaussian). Against the truth the errors are larger, by what maps on nodes cannot follow (measured
     on this cube: C_m 2.6σ, β_m 3.3σ); the accuracy tests bound that."""
     clean = replace(small_cube.cube, reflectance=small_cube.clean)
     noiseless = fit_cube(clean, FitSettings(**small_fit_settings))
     keep = small_cube.cube.mask & ~small_cube.vein
-    z = _median_z(small_fit, noiseless.maps, keep)
+    z = _median_z(small_fit, noiseless.maps, keep, sigma="sigma_noise")
     assert all(0.2 < v < 2.0 for v in z.values()), z
 
 
 def test_per_pixel_uncertainty_is_consistent_with_the_errors(small_cube):
-    """Every map per pixel (the paper's model): σ describes the errors against the truth itself."""
+    """Every map per pixel (the paper's model): σ covers the errors against the truth itself (≥ 90% of
+    the pixels within ±2σ) without being wider than the errors by an order of magnitude. σ includes the
+    model floor measured on the demo's sessions (``uncertainty.MODEL_FLOOR``); this quiet cube, rendered
+    without optics or calibration, has less model error than they do, so the floor makes C_he's σ
+    conservative here (median |error|/σ measured 0.18; 0.75, 0.69, 0.54 for C_m, β_m, C_hd)."""
     fit = fit_cube(small_cube.cube, FitSettings(map_cell_mm=dict.fromkeys(PARAMETER_NAMES, 0.0)))
-    z = _median_z(fit, small_cube.truth, small_cube.cube.mask & ~small_cube.vein)
-    assert all(0.2 < v < 2.0 for v in z.values()), z
+    keep = small_cube.cube.mask & ~small_cube.vein
+    z = _median_z(fit, small_cube.truth, keep)
+    assert all(0.1 < v < 2.0 for v in z.values()), z
+    for n in ("C_m", "beta_m", "C_he", "C_hd"):
+        k = PARAMETER_NAMES.index(n)
+        inside = (getattr(fit.maps, n)[0] - getattr(small_cube.truth, n)[0]).abs() <= 2.0 * fit.sigma[k]
+        assert float(inside[keep].float().mean()) >= 0.9, n
 
 
 @pytest.mark.slow
@@ -125,7 +134,7 @@ def test_fair_skin_at_full_camera_noise(synthetic):
     assert err["C_m"] < 0.10 and err["C_hd"] < 0.10 and err["C_he"] < 0.25 and err["beta_m"] < 0.10, err
     assert _residual_rms(fit, syn) <= 1.2 * _noise_rms(syn)
     clean = replace(syn.cube, reflectance=syn.clean)
-    z = _median_z(fit, fit_cube(clean, FitSettings()).maps, syn.cube.mask & ~syn.vein)
+    z = _median_z(fit, fit_cube(clean, FitSettings()).maps, syn.cube.mask & ~syn.vein, sigma="sigma_noise")
     assert all(0.2 < v < 2.0 for v in z.values()), z
 
 
