@@ -193,11 +193,20 @@ def fit_cube(
     def noise_at(level) -> torch.Tensor:  # the cube's own per band (L,); each 2×2 mean halves white noise's σ
         return band_noise(target, checks.fit_mask.to(dev)) * (cube.mm_per_pixel / level.mm_per_pixel)
 
+    carried: dict = {}  # forward model → the last level's (shape, loss pixels, robust weights)
+
     def fit_level(i: int, problem: LevelProblem, x, log_scale, forward: str) -> OptimResult:
         c0, f0, b0 = time.process_time(), counter.forward, counter.backward
         passes: list[int] = []
         result = None
-        for k in range(1 + settings.robust_passes):  # the fit, then its robust refits
+        n_pass = 1 + settings.robust_passes
+        prev = carried.get(forward)
+        if (settings.robust_finest == "carry" and i == len(levels) - 1 and prev is not None and prev[0] != problem.level.shape
+                and problem.pixel_weight is None):
+            # the finest level weighted from the start by the level above's robust weights: one pass instead of two
+            problem.pixel_weight = _carry_weights(prev, problem)
+            n_pass = 1
+        for k in range(n_pass):  # the fit, then its robust refits
             if k:
                 problem.pixel_weight = robust_weights(pixel_rms(problem, result.evaluation), settings.robust_scale)
                 x, log_scale = result.x, result.log_scale
@@ -207,6 +216,8 @@ def fit_cube(
             )
             passes.append(result.iterations)
             history.extend((t - cpu0, loss, i) for t, loss in result.history[1 if k else 0:])
+        if problem.pixel_weight is not None:
+            carried[forward] = (problem.level.shape, problem.pixels, problem.pixel_weight)
         records.append({"forward": forward, **_level_record(problem, result, passes, time.process_time() - c0,
                                                             counter.forward - f0, counter.backward - b0)})
         say(FitEvent("level", i, len(levels), sum(passes), result.evaluation.loss, pixels))
@@ -274,6 +285,15 @@ def _absorber_fit(problem: LevelProblem, result: OptimResult, i: int, noise_at, 
     if not found.kept:
         return found, result
     return found, fit_level(i, problem, x, result.log_scale, "heterogeneous")
+
+
+def _carry_weights(prev, problem: LevelProblem) -> torch.Tensor:
+    """A coarser level's robust weights ``(N_coarse,)`` on this level's loss pixels ``(N,)`` (nearest)."""
+    shape, pixels, weight = prev
+    image = torch.ones(shape[0] * shape[1], dtype=weight.dtype, device=weight.device)
+    image[pixels] = weight
+    up = F.interpolate(image.reshape(1, 1, *shape), size=problem.level.shape, mode="nearest")[0, 0].reshape(-1)
+    return up[problem.pixels]
 
 
 def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting: str, level_problem, noise_at, fit_level):

@@ -2,9 +2,10 @@
 simulation's truth (on demand: ``pytest -m bench tests/bench/test_bench_uncertainty.py -s``; about
 three minutes a seed on two cores).
 
-Each seed runs ``skinlayers demo --seed S`` (the simulated rig: a 512² scene through the optics, camera
-noise and the calibration, fitted at 256²; ``--scene FILE`` via ``SKINLAYERS_BENCH_SCENE`` for another
-scene, e.g. configs/scene.yaml with its hairs). Per seed and map, over the visible pixels the fit does
+Each seed's session comes from ``skinlayers demo --seed S`` (``demo_sessions.py``: the simulated rig, a
+512² scene through the optics, camera noise and the calibration into a 256² cube; ``--scene FILE`` via
+``SKINLAYERS_BENCH_SCENE`` for another scene, e.g. configs/scene.yaml with its hairs), fitted anew with
+the default settings. Per seed and map, over the visible pixels the fit does
 not flag for a high residual: the share within ±2σ of the truth (box-averaged to the cube's pixels)
 with σ as written (``sigma_<map>``), with the data's terms alone (σ without ``MODEL_FLOOR``, removed
 in quadrature), with the noise's share alone (``sigma_noise_<map>``), the median |error|/σ, and the
@@ -15,8 +16,6 @@ it. Writes ``uncertainty_coverage.csv``.
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +23,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from bench_io import out_dir, write_csv  # noqa: E402
+from bench_io import write_csv  # noqa: E402
+from demo_sessions import calibrated_session, refit  # noqa: E402
 
 pytestmark = pytest.mark.bench
 
@@ -72,11 +72,11 @@ def _coverage(folder: Path, seed: int) -> list[dict]:
 def test_uncertainty_coverage_on_demo_sessions():
     rows = []
     scene = os.environ.get("SKINLAYERS_BENCH_SCENE")
+    from skinlayers.reconstruct.settings import FitSettings
+
     for seed in SEEDS:
-        folder = out_dir() / f"uncertainty_seed{seed}"
-        if not (folder / "reconstruction" / "fit.json").exists():
-            cmd = [sys.executable, "-m", "skinlayers", "demo", "--seed", str(seed), "-o", str(folder)]
-            subprocess.run(cmd + (["--scene", scene] if scene else []), check=True)
+        folder = calibrated_session(f"uncertainty_seed{seed}" + ("_scene" if scene else ""), seed, scene)
+        refit(folder, FitSettings())
         rows.extend(_coverage(folder, seed))
     write_csv("uncertainty_coverage.csv", rows, "σ against the simulation's truth, demo sessions")
     assert all(r["cover_sigma"] >= r["cover_noise_share"] for r in rows)
