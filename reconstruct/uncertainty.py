@@ -93,16 +93,17 @@ def subnode_sd(problem: LevelProblem, jac: torch.Tensor, residual: torch.Tensor,
     used = problem.band_weight > 0
     jw = jac.double()[:, used] / sd_band.double()[used][None, :, None]
     rw = residual.double()[:, used] / sd_band.double()[used]
-    own = jw[..., layout.fine]  # (N, L_used, n_fine)
+    own = jw[..., layout.fine]  # (N, L_used, n_fine); n_fine may be 0 (every map on nodes)
     gram = own.transpose(1, 2) @ own
-    ridge = 1e-9 * torch.diagonal(gram, dim1=1, dim2=2).amax(1).clamp_min(1e-300)[:, None, None]
-    gram = gram + ridge * torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
+    if layout.fine:
+        ridge = 1e-9 * torch.diagonal(gram, dim1=1, dim2=2).amax(1).clamp_min(1e-300)[:, None, None]
+        gram = gram + ridge * torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
     h, w = problem.level.shape
     mask = problem.mask.cpu().numpy()
     pixels = problem.pixels.cpu().numpy()
     for k in layout.coarse:
         col = jw[..., k]
-        a = col - (own @ torch.linalg.solve(gram, (own.transpose(1, 2) @ col[..., None])))[..., 0]
+        a = col - (own @ torch.linalg.solve(gram, (own.transpose(1, 2) @ col[..., None])))[..., 0] if layout.fine else col
         aa = (a * a).sum(1).clamp_min(1e-300)
         excess = (((a * rw).sum(1) / aa) ** 2 - 1.0 / aa) / float(rho[k]) ** 2  # (N,) in x², noise removed
         image = np.zeros(h * w)
