@@ -40,11 +40,8 @@ from .least_squares import block_factor, block_solve, forward_jacobian
 from .problem import LevelProblem
 from .unknowns import X_LIMIT, params_of_rows
 
-__all__ = ["ABSORBER_CHOICES", "DILATE_PX", "EXIT_SHARE", "AbsorberFit", "candidate_rows", "fit_grey_absorbance"]
+__all__ = ["DILATE_PX", "EXIT_SHARE", "AbsorberFit", "candidate_rows", "fit_grey_absorbance"]
 
-#: ``absorbers`` setting: ``auto`` adds a grey absorbance where the residual asks, ``none`` never does.
-ABSORBER_CHOICES = {"auto": "a grey interface absorbance on the pixels whose residual asks for it (hairs)",
-                    "none": "no absorber beyond the skin's chromophores"}
 #: Candidates grow by this many pixels (a hair's edge pixels are darkened less than its centre).
 DILATE_PX = 1
 #: Scale of the homogeneous model's ∂R/∂P in the pixel's Jacobian (1: as gn-hom treats the maps).
