@@ -19,19 +19,37 @@ What was checked, the values and why the winner won go into ``fit.json`` (``Forw
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import torch
 
-from ..model import N_PARAMS
+from ..model import N_PARAMS, PARAMETER_NAMES, SkinParams
+from .grids import MapLayout
 from .problem import Evaluation, HomogeneousProblem, LevelProblem
+from .unknowns import to_params
 
-__all__ = ["CROSSTALK_LIMIT", "CrossTalkCheck", "ForwardChoice", "crosstalk_check", "window_light_factor"]
+__all__ = ["CONSTANT_R", "CROSSTALK_LIMIT", "CrossTalkCheck", "ForwardChoice", "crosstalk_check", "spatial_structure",
+           "uniform_light_factor", "window_light_factor"]
 
 #: The homogeneous fit is kept where the renderer at its maps differs from it by at most this RMS, in
 #: units of each band's noise σ: the left-out cross-talk then adds at most 0.5² = a quarter to the
 #: noise's variance.
 CROSSTALK_LIMIT = 0.5
+#: A map is fitted as one value for the patch where the homogeneous fit's values of it show less
+#: structure than noise: for a map smooth on the scale of neighbours, the correlation r of neighbouring
+#: values is the structure's share of their variance, so r < 1/2 says the variation a per-pixel map
+#: would follow is smaller than the noise it would take on — one value then errs less (bias² below
+#: variance). Tested on r's upper bound, r + 2/√(pairs) (r's spread for independent noise is 1/√(pairs):
+#: each product of distinct neighbours is uncorrelated with every other), on the coarsest level, whose
+#: noise is the lowest of all levels (the finest's per-pixel maps would carry 4ᵏ times its variance).
+CONSTANT_R = 0.5
+#: Fewer neighbour pairs than this tell nothing: the map keeps its grid.
+MIN_PAIRS = 16
+#: The structure test leaves out per-pixel values this near the window's edges (about the light's spread).
+EDGE_MM = 1.0
+#: Node spacing that makes a map one value for the patch (as carotene's default).
+PATCH_MM = 100.0
 
 
 def window_light_factor(problem: LevelProblem, x: torch.Tensor) -> torch.Tensor:
@@ -44,6 +62,86 @@ def window_light_factor(problem: LevelProblem, x: torch.Tensor) -> torch.Tensor:
         rendered = problem.evaluate(uniform, torch.zeros((), dtype=x.dtype, device=x.device)).image
         alone = problem.homogeneous_image(uniform)
     return (rendered / alone.clamp_min(1e-12)).detach()
+
+
+def uniform_light_factor(problem: LevelProblem, x: torch.Tensor) -> torch.Tensor:
+    """``window_light_factor`` without a render: for uniform skin Eq. 7's series collapses to the
+    Fourier-domain combination of the layers (DWRR08 §3, Eq. 3; ``SkinModel.combined_hankel``), so the
+    render of uniform skin under the level's light is one FFT of the lit window times R̂₁₂(|k|)/R₁₂(0)
+    and the pixels' box, per band, from the renderer's own Gaussian tables. ``(L, H, W)``, the
+    problem's dtype. Measured against the render it replaces (the pyramid blur): docs/reconstruct.md."""
+    h, w = problem.level.shape
+    mm = problem.level.mm_per_pixel
+    border = problem.light.border_px(mm, problem.renderer.settings.render.border_mm)
+    median = x.reshape(N_PARAMS, -1)[:, problem.pixels].median(dim=1).values.double()
+    p = SkinParams(*to_params(median).unbind(0))
+    lit = problem.light.irradiance(h, w, border, mm, torch.float64, x.device)
+    # zero padding beyond the border: the renderer's scene is dark there too, and light that would wrap
+    # around the FFT's period has crossed the border and its dark beyond first
+    ny, nx = lit.shape[-2] + 2 * border, lit.shape[-1] + 2 * border
+    ky = 2.0 * math.pi * torch.fft.fftfreq(ny, d=mm, dtype=torch.float64, device=x.device)
+    kx = 2.0 * math.pi * torch.fft.rfftfreq(nx, d=mm, dtype=torch.float64, device=x.device)
+    kk = torch.sqrt(ky[:, None] ** 2 + kx[None, :] ** 2)
+    unique, inverse = torch.unique(kk.reshape(-1), return_inverse=True)
+    model = problem.renderer.model
+    wl = problem.wavelength_nm
+    transfer = model.combined_hankel(p, wl, unique, method="tables")  # (L, K)
+    total = model.total_reflectance(p, wl, method="tables")  # (L,)
+    transfer = (transfer / total[:, None])[:, inverse].reshape(-1, *kk.shape)
+    box = (torch.sinc(ky * mm / (2.0 * math.pi)) ** 2)[:, None] * (torch.sinc(kx * mm / (2.0 * math.pi)) ** 2)[None, :]
+    padded = torch.zeros(ny, nx, dtype=torch.float64, device=x.device)
+    padded[: lit.shape[-2], : lit.shape[-1]] = lit
+    out = torch.fft.irfft2(torch.fft.rfft2(padded) * transfer * box, s=(ny, nx))
+    return out[:, border: border + h, border: border + w].to(x.dtype).contiguous()
+
+
+def _lag_one(values: torch.Tensor, valid: torch.Tensor) -> tuple[float, int]:
+    """Correlation r of horizontally and vertically neighbouring ``values`` ``(H, W)`` where both are
+    ``valid``, and the pairs: the values winsorised to their 1–99% range first, so a
+    few pixels at a bound do not decide."""
+    v = values.double()
+    inside = v[valid]
+    q = torch.quantile(inside, torch.tensor([0.01, 0.99], dtype=torch.float64, device=v.device))
+    d = v.clamp(float(q[0]), float(q[1]))
+    d = torch.where(valid, d - d[valid].mean(), torch.zeros_like(d))
+    var = float((d[valid] ** 2).mean())
+    pairs_h = valid[:, :-1] & valid[:, 1:]
+    pairs_v = valid[:-1, :] & valid[1:, :]
+    pairs = int(pairs_h.sum() + pairs_v.sum())
+    if pairs == 0 or var <= 0.0:
+        return 0.0, pairs
+    products = float((d[:, :-1] * d[:, 1:])[pairs_h].sum() + (d[:-1, :] * d[1:, :])[pairs_v].sum())
+    return products / (pairs * var), pairs
+
+
+def spatial_structure(layout: MapLayout, x: torch.Tensor, mask: torch.Tensor, mm_per_pixel: float) -> dict[str, dict]:
+    """For every map not already one value for the patch: ``r`` (``_lag_one`` of its own unknowns —
+    the loss pixels' values of a per-pixel map, the node values of a map on nodes, never the
+    interpolated pixels, which are alike by construction), its upper bound ``r_upper`` = r + 2/√pairs,
+    the neighbour ``pairs`` and ``constant`` (``r_upper`` below ``CONSTANT_R`` on at least ``MIN_PAIRS``
+    pairs). ``x`` ``(N_PARAMS, H, W)``, ``mask`` ``(H, W)``.
+
+    Per-pixel values count from ``EDGE_MM`` inside the window's edges: nearer, the light factor of the
+    skin's median is the model's own approximation (off by 0.3–0.7% for other skin, measured), and the
+    maps take it up as a ring (on a flat 128² patch C_m 1.1% low at the edge against 0.7% inside)."""
+    inner = max(int(round(EDGE_MM / mm_per_pixel)), 0)
+    interior = torch.zeros_like(mask)
+    interior[inner: mask.shape[0] - inner, inner: mask.shape[1] - inner] = True
+    out = {}
+    for k, name in enumerate(PARAMETER_NAMES):
+        if k in layout.grids:
+            grid = layout.grids[k]
+            if grid.n_nodes == 1:
+                continue
+            values = grid.project(x[k]).reshape(grid.nodes)
+            valid = torch.ones_like(values, dtype=torch.bool)
+        else:
+            values, valid = x[k], mask & interior
+        r, pairs = _lag_one(values, valid)
+        upper = r + 2.0 / math.sqrt(max(pairs, 1))
+        out[name] = {"r": round(r, 4), "r_upper": round(upper, 4), "pairs": pairs,
+                     "constant": pairs >= MIN_PAIRS and upper < CONSTANT_R}
+    return out
 
 
 @dataclass
@@ -97,6 +195,19 @@ class ForwardChoice:
     checks: list[CrossTalkCheck] = field(default_factory=list)
     homogeneous_wall_s: float = 0.0
     note: str = ""
+    #: each map's spatial-structure test on the coarsest level's homogeneous fit (``spatial_structure``)
+    structure: dict[str, dict] = field(default_factory=dict)
+
+    @property
+    def constant_maps(self) -> list[str]:
+        """The maps the structure test made one value for the patch."""
+        return [name for name, found in self.structure.items() if found["constant"]]
+
+    @property
+    def uniform(self) -> bool:
+        """Every map one value: uniform skin, for which the homogeneous model under the window's light
+        is the renderer's own answer (Fourier-domain combination): no render is needed."""
+        return bool(self.structure) and len(self.constant_maps) == len(self.structure)
 
     @property
     def reason(self) -> str:
@@ -107,12 +218,19 @@ class ForwardChoice:
         last = self.checks[-1]
         where = f"level {last.level + 1} ({last.shape[0]}×{last.shape[1]} px)"
         if self.chosen == "homogeneous":
-            return (f"the renderer differs from the homogeneous fit by {last.crosstalk_rms:.2f} of the noise at {where} "
-                    f"(limit {last.limit:g}): the cross-talk is below the noise, the homogeneous maps are kept")
+            why = (f"the renderer differs from the homogeneous fit by {last.crosstalk_rms:.2f} of the noise at {where} "
+                   f"(limit {last.limit:g}): the cross-talk is below the noise, the homogeneous maps are kept")
+            constant = self.constant_maps
+            if constant:
+                rs = ", ".join(f"{n} {self.structure[n]['r_upper']:.2f}" for n in constant)
+                why += (f"; {', '.join(constant)} vary less than their noise (neighbour correlation at most {rs} < "
+                        f"{CONSTANT_R:g}): one value for the patch" + (" (uniform skin: no render needed)" if self.uniform else ""))
+            return why
         return (f"the renderer differs from the homogeneous fit by {last.crosstalk_rms:.2f} of the noise at {where}, "
                 f"most at {last.worst_band_nm:g} nm (limit {last.limit:g}): the scene needs the heterogeneous renderer")
 
     def as_dict(self) -> dict:
         return {"setting": self.setting, "chosen": self.chosen, "reason": self.reason,
                 "checks": [{**asdict(c), "passed": c.passed} for c in self.checks],
+                "structure": self.structure, "constant_maps": self.constant_maps, "uniform": self.uniform,
                 "homogeneous_wall_s": round(self.homogeneous_wall_s, 3)}

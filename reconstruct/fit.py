@@ -32,7 +32,7 @@ from ..formats.resources import require_memory
 from ..model.renderer import SkinRenderer, render_bytes
 from .absorbers import AbsorberFit, candidate_rows, fit_grey_absorbance
 from .checks import DataChecks, check_cube, flag_value
-from .fidelity import ForwardChoice, crosstalk_check, window_light_factor
+from .fidelity import PATCH_MM, ForwardChoice, crosstalk_check, spatial_structure, uniform_light_factor, window_light_factor
 from .gauss_newton import curvature_and_columns, level_step
 from .grid_choice import band_noise, choose_map_grids
 from .optimizers import METHODS, OptimResult
@@ -40,6 +40,7 @@ from .problem import HomogeneousProblem, LevelProblem, RenderCounter
 from .schur import marginal_variance
 from .settings import FitSettings
 from .start import STARTS
+from .uniform import fit_uniform
 from .uncertainty import MODEL_FLOOR, MODEL_FLOOR_ABSOLUTE, crosstalk_ratio, model_floor, subnode_sd
 from .unknowns import dparams_dx, extend, near_bound, pyramid, to_params, upsample
 
@@ -195,7 +196,7 @@ def fit_cube(
 
     carried: dict = {}  # forward model → the last level's (shape, loss pixels, robust weights)
 
-    def fit_level(i: int, problem: LevelProblem, x, log_scale, forward: str) -> OptimResult:
+    def fit_level(i: int, problem: LevelProblem, x, log_scale, forward: str, method=None) -> OptimResult:
         c0, f0, b0 = time.process_time(), counter.forward, counter.backward
         passes: list[int] = []
         result = None
@@ -210,7 +211,7 @@ def fit_cube(
             if k:
                 problem.pixel_weight = robust_weights(pixel_rms(problem, result.evaluation), settings.robust_scale)
                 x, log_scale = result.x, result.log_scale
-            result = METHODS[settings.method](
+            result = (method or METHODS[settings.method])(
                 problem, x, log_scale, settings,
                 lambda it, loss, i=i, done=sum(passes): say(FitEvent("fit", i, len(levels), done + it, loss, pixels)),
             )
@@ -239,8 +240,10 @@ def fit_cube(
 
     result, forward = None, None
     if settings.forward != "heterogeneous":
-        result, forward = _homogeneous_fit(levels, problem, x, log_scale, cells, settings.forward, level_problem, noise_at,
-                                           fit_level)
+        result, forward, fitted_cells = _homogeneous_fit(levels, problem, x, log_scale, cells, settings.forward,
+                                                         level_problem, noise_at, fit_level)
+        if result is not None:
+            cells = fitted_cells
     if result is None:  # the renderer's fit, from the start
         for i, level in enumerate(levels):
             if i:
@@ -299,13 +302,17 @@ def _carry_weights(prev, problem: LevelProblem) -> torch.Tensor:
 def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting: str, level_problem, noise_at, fit_level):
     """Every level fitted with each pixel's homogeneous model under the window's light (``fidelity``).
     The coarsest level's light factor is re-made from the skin it finds (``LIGHT_FACTOR_PASSES``), the
-    finest level's from its own render. With ``setting == "auto"`` the fit is checked against the
-    renderer twice before the finer levels are fitted: on the coarsest level at its maps, then on the
-    finest at those maps upsampled (smooth: the check measures the scene's cross-talk, not that of
-    the maps' own pixel noise, which the renderer blurs and the homogeneous model does not: measured
-    0.81 of the noise on a flat 128² cube at its own fine maps, 0.07 at the upsampled coarse ones).
-    Returns the finest level's result (its evaluation the renderer's) and the choice, or ``(None,
-    choice)`` where a check fails and the renderer's fit must run."""
+    finest level's by the Fourier-domain combination (``uniform_light_factor``: no render). With
+    ``setting == "auto"`` the fit is checked against the renderer on the coarsest level at its maps;
+    maps whose values there show no spatial structure (``spatial_structure``) become one value for the
+    patch, and where every map is one value (uniform skin) the homogeneous model is the renderer's own
+    answer: the finest level is fitted at once, without a render. Otherwise the finest is checked at the
+    coarse maps upsampled (smooth: the check measures the scene's cross-talk, not that of the maps' own
+    pixel noise, which the renderer blurs and the homogeneous model does not: measured 0.81 of the
+    noise on a flat 128² cube at its own fine maps, 0.07 at the upsampled coarse ones).
+    Returns the finest level's result (its evaluation the renderer's unless the skin is uniform), the
+    choice and the map grids it fitted, or ``(None, choice, cells)`` where a check fails and the
+    renderer's fit must run."""
     wall0 = time.perf_counter()
     choice = ForwardChoice(setting, "homogeneous")
     last = len(levels) - 1
@@ -314,7 +321,7 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
             noise_at(levels[last])
         except ValueError as err:  # too few pixels to tell the noise: nothing to weigh the cross-talk against
             choice.chosen, choice.note = "heterogeneous", f"the cube's noise cannot be measured ({err})"
-            return None, choice
+            return None, choice, cells
 
     def check(i: int, x_at, scale_at, factor_at):
         rendered = level_problem(levels[i], cells)
@@ -329,29 +336,46 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
         result = fit_level(0, hom, x, log_scale, "homogeneous")
         x, log_scale = extend(result.x, hom.index), result.log_scale
     evaluation = None
+    passed = True
     if setting == "auto":
         passed, evaluation = check(0, x, log_scale, factor)
-    if last > 0 and (setting != "auto" or passed):
-        # the window's edges fall off within a fraction of a millimetre: the finest level's factor is its
-        # own render (an upsampled coarse one is off by 1% at the edge pixels, measured), the levels
-        # between take its area means
-        x_fine = upsample(x, levels[last].shape)
-        factor = window_light_factor(level_problem(levels[last], cells), x_fine)
-        if setting == "auto":
-            passed, evaluation = check(last, x_fine, log_scale, factor)
+        if passed:  # maps with no structure: one value for the patch, refitted so on this level
+            choice.structure = spatial_structure(hom.layout, x, hom.mask, levels[0].mm_per_pixel)
+            if choice.constant_maps:
+                cells = {**cells, **dict.fromkeys(choice.constant_maps, PATCH_MM)}
+                hom = level_problem(levels[0], cells, factor)
+                x = hom.layout.assemble(x, hom.layout.project(x))
+                result = fit_level(0, hom, x, log_scale, "homogeneous", fit_uniform if choice.uniform else None)
+                x, log_scale = extend(result.x, hom.index), result.log_scale
     if setting == "auto" and not passed:
         choice.chosen = "heterogeneous"
         choice.homogeneous_wall_s = time.perf_counter() - wall0
-        return None, choice
-    for i in range(1, len(levels)):
+        return None, choice, cells
+    uniform = setting == "auto" and choice.uniform
+    if last > 0:
+        # the window's edges fall off within a fraction of a millimetre: the finest level's factor is its
+        # own (an upsampled coarse one is off by 1% at the edge pixels, measured), the levels between
+        # take its area means
+        x_fine = upsample(x, levels[last].shape)
+        factor = uniform_light_factor(level_problem(levels[last], cells), x_fine)
+        if setting == "auto" and not uniform:
+            passed, evaluation = check(last, x_fine, log_scale, factor)
+            if not passed:
+                choice.chosen = "heterogeneous"
+                choice.homogeneous_wall_s = time.perf_counter() - wall0
+                return None, choice, cells
+    # uniform skin: five values, which every level determines alike; the finest fitted at once
+    for i in ([last] if uniform and last > 0 else range(1, len(levels))):
         x = upsample(x, levels[i].shape)
         hom = level_problem(levels[i], cells, F.interpolate(factor[None], size=levels[i].shape, mode="area")[0])
-        result = fit_level(i, hom, x, log_scale, "homogeneous")
+        result = fit_level(i, hom, x, log_scale, "homogeneous", fit_uniform if uniform else None)
         x, log_scale = extend(result.x, hom.index), result.log_scale
-    if evaluation is None or last > 0:  # the renderer at the final maps: the residual, flags and σ are its
+    if uniform:  # the homogeneous model of uniform skin under the window's light is the render (Eq. 3)
+        evaluation = level_problem(levels[last], cells, factor).evaluate(x, log_scale)
+    elif evaluation is None or last > 0:  # the renderer at the final maps: the residual, flags and σ are its
         evaluation = level_problem(levels[last], cells).evaluate(x, log_scale)
     choice.homogeneous_wall_s = time.perf_counter() - wall0
-    return OptimResult(x, log_scale, evaluation, result.iterations, result.converged, result.history), choice
+    return OptimResult(x, log_scale, evaluation, result.iterations, result.converged, result.history), choice, cells
 
 
 def _require_memory(cube: Cube, settings: FitSettings, dtype: torch.dtype, device: torch.device) -> None:
