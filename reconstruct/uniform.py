@@ -64,7 +64,7 @@ def fit_uniform(problem: HomogeneousProblem, x0: torch.Tensor, log_scale0: torch
     point = torch.cat([theta, log_scale.view(1)]) if free_scale else theta
     r = residual(point).detach()
     loss = 0.5 * float((r * r).sum())
-    lam = torch.full((1,), LAMBDA0, dtype=dtype)
+    lam = torch.full((1,), LAMBDA0, dtype=dtype, device=theta.device)
     history = [(time.process_time(), loss)]
     converged, it = False, 0
     for it in range(1, settings.max_iterations + 1):
