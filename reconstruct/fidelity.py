@@ -52,12 +52,16 @@ EDGE_MM = 1.0
 PATCH_MM = 100.0
 
 
+def _median_skin(problem: LevelProblem, x: torch.Tensor) -> torch.Tensor:
+    """The unknowns' median ``(N_PARAMS,)`` over the loss pixels: the skin a light factor is made at."""
+    return x.reshape(N_PARAMS, -1)[:, problem.pixels].median(dim=1).values
+
+
 def window_light_factor(problem: LevelProblem, x: torch.Tensor) -> torch.Tensor:
     """The window's light factor ``(L, H, W)`` at this level: the render of uniform skin at the median of
     the unknowns ``x`` ``(N_PARAMS, H, W)`` over the loss pixels, over that skin's homogeneous value
     (1 in the window's middle, less toward its edges). One render."""
-    median = x.reshape(N_PARAMS, -1)[:, problem.pixels].median(dim=1).values
-    uniform = median.view(N_PARAMS, 1, 1).expand_as(x).contiguous()
+    uniform = _median_skin(problem, x).view(N_PARAMS, 1, 1).expand_as(x).contiguous()
     with torch.no_grad():
         rendered = problem.evaluate(uniform, torch.zeros((), dtype=x.dtype, device=x.device)).image
         alone = problem.homogeneous_image(uniform)
@@ -73,8 +77,7 @@ def uniform_light_factor(problem: LevelProblem, x: torch.Tensor) -> torch.Tensor
     h, w = problem.level.shape
     mm = problem.level.mm_per_pixel
     border = problem.light.border_px(mm, problem.renderer.settings.render.border_mm)
-    median = x.reshape(N_PARAMS, -1)[:, problem.pixels].median(dim=1).values.double()
-    p = SkinParams(*to_params(median).unbind(0))
+    p = SkinParams(*to_params(_median_skin(problem, x).double()).unbind(0))
     lit = problem.light.irradiance(h, w, border, mm, torch.float64, x.device)
     # zero padding beyond the border: the renderer's scene is dark there too, and light that would wrap
     # around the FFT's period has crossed the border and its dark beyond first
@@ -124,7 +127,7 @@ def spatial_structure(layout: MapLayout, x: torch.Tensor, mask: torch.Tensor, mm
     Per-pixel values count from ``EDGE_MM`` inside the window's edges: nearer, the light factor of the
     skin's median is the model's own approximation (off by 0.3–0.7% for other skin, measured), and the
     maps take it up as a ring (on a flat 128² patch C_m 1.1% low at the edge against 0.7% inside)."""
-    inner = max(int(round(EDGE_MM / mm_per_pixel)), 0)
+    inner = int(round(EDGE_MM / mm_per_pixel))
     interior = torch.zeros_like(mask)
     interior[inner: mask.shape[0] - inner, inner: mask.shape[1] - inner] = True
     out = {}

@@ -316,12 +316,18 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
     wall0 = time.perf_counter()
     choice = ForwardChoice(setting, "homogeneous")
     last = len(levels) - 1
+
+    def renderer_needed():  # a check failed: the renderer's fit runs, from its own start
+        choice.chosen = "heterogeneous"
+        choice.homogeneous_wall_s = time.perf_counter() - wall0
+        return None, choice, cells
+
     if setting == "auto":
         try:
             noise_at(levels[last])
         except ValueError as err:  # too few pixels to tell the noise: nothing to weigh the cross-talk against
-            choice.chosen, choice.note = "heterogeneous", f"the cube's noise cannot be measured ({err})"
-            return None, choice, cells
+            choice.note = f"the cube's noise cannot be measured ({err})"
+            return renderer_needed()
 
     def check(i: int, x_at, scale_at, factor_at):
         rendered = level_problem(levels[i], cells)
@@ -347,10 +353,8 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
                 x = hom.layout.assemble(x, hom.layout.project(x))
                 result = fit_level(0, hom, x, log_scale, "homogeneous", fit_uniform if choice.uniform else None)
                 x, log_scale = extend(result.x, hom.index), result.log_scale
-    if setting == "auto" and not passed:
-        choice.chosen = "heterogeneous"
-        choice.homogeneous_wall_s = time.perf_counter() - wall0
-        return None, choice, cells
+    if not passed:
+        return renderer_needed()
     uniform = setting == "auto" and choice.uniform
     if last > 0:
         # the window's edges fall off within a fraction of a millimetre: the finest level's factor is its
@@ -361,9 +365,7 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
         if setting == "auto" and not uniform:
             passed, evaluation = check(last, x_fine, log_scale, factor)
             if not passed:
-                choice.chosen = "heterogeneous"
-                choice.homogeneous_wall_s = time.perf_counter() - wall0
-                return None, choice, cells
+                return renderer_needed()
     # uniform skin: five values, which every level determines alike; the finest fitted at once
     for i in ([last] if uniform and last > 0 else range(1, len(levels))):
         x = upsample(x, levels[i].shape)

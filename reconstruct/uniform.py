@@ -55,7 +55,7 @@ def fit_uniform(problem: HomogeneousProblem, x0: torch.Tensor, log_scale0: torch
     seen = a > 0
     mean = torch.where(seen, b / a.clamp_min(1e-300), torch.zeros_like(b))
     root = a.sqrt()
-    free_scale = bool(getattr(settings, "free_scale", False))
+    free_scale = settings.free_scale
 
     def residual(params: torch.Tensor) -> torch.Tensor:  # (L,): √A_b (s m_b − B_b/A_b)
         th, ls = (params[:N_PARAMS], params[N_PARAMS]) if free_scale else (params, log_scale)
