@@ -1,5 +1,5 @@
-"""The pieces every least-squares fit here is built of, written once: the forward-mode Jacobian of a
-batch of small problems, the damped (Levenberg–Marquardt) step of their normal equations, and the rule
+"""The pieces every least-squares fit here is built of, written once: the Jacobian of a batch of small
+problems (forward or reverse mode, whichever is cheaper for their shape), the damped (Levenberg–Marquardt) step of their normal equations, and the rule
 that adapts each problem's damping.
 
 Both fits use them: the point-spectrum fit (``spectrum_fit``: one small problem per spectrum and start)
@@ -28,7 +28,7 @@ import torch.autograd.forward_ad as fwAD
 
 __all__ = [
     "LAMBDA0", "LAMBDA_MAX", "LAMBDA_MIN", "block_factor", "block_solve", "damped_step", "forward_jacobian", "next_damping",
-    "predicted_decrease",
+    "predicted_decrease", "reverse_jacobian",
 ]
 
 #: The damping a problem starts with, and the range it is kept in.
@@ -45,6 +45,23 @@ def forward_jacobian(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor
         out = fn(fwAD.make_dual(x.repeat(n, 1), tangents))
         value, tangent = fwAD.unpack_dual(out)
     return value[:rows], tangent.reshape(n, rows, -1).permute(1, 2, 0)
+
+
+def reverse_jacobian(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``forward_jacobian``'s answer by reverse mode: one backward pass per output column, batched
+    (``is_grads_batched``), each row's gradient its own (rows independent). For problems with few
+    outputs per row (a cube's bands, not a spectrometer's hundred samples): forward mode pays a fixed
+    cost per operation with a non-dual operand (a constant, a scalar: its zero tangent takes a slow
+    path in torch 2.13, 0.2–0.7 ms an operation, measured), which reverse mode does not. Measured on
+    the homogeneous model at 9 bands: 26 against 60 ms for 4,096 rows, 3.4 against 18 ms for one; at
+    101 samples and 400 rows forward mode wins, 134 against 1,424 ms."""
+    xx = x.detach().clone().requires_grad_(True)
+    with torch.enable_grad():
+        out = fn(xx)
+    rows, outputs = out.shape
+    seeds = torch.eye(outputs, dtype=out.dtype, device=out.device)[:, None, :].expand(outputs, rows, outputs)
+    (grad,) = torch.autograd.grad(out, xx, seeds, is_grads_batched=True)  # (outputs, rows, n)
+    return out.detach(), grad.permute(1, 0, 2)
 
 
 def block_factor(a: torch.Tensor, lam: torch.Tensor | float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -18,7 +18,7 @@ is far below the render's.
 
 ``homogeneous_jacobian`` is each pixel's *homogeneous* model — the renderer's uniform-light limit,
 R_d(p) times the exit factor (``model/radiometry.py``), from the renderer's own tables — and its
-Jacobian with respect to the unknowns, by forward-mode autodiff (``least_squares.forward_jacobian``),
+Jacobian with respect to the unknowns, by reverse-mode autodiff (``least_squares.reverse_jacobian``),
 batched over pixels: the cheap per-pixel curvature of the Gauss–Newton methods (``optimizers.py``).
 
 ``layout`` (``grids.MapLayout``) says which maps the fit takes per pixel and which on coarser nodes
@@ -35,6 +35,7 @@ import time
 from dataclasses import dataclass, field
 
 import torch
+import torch.autograd.forward_ad as fwAD
 
 from ..model import SkinParams
 from ..model.illumination import Light
@@ -42,7 +43,7 @@ from ..model.maps import SkinMaps
 from ..model.radiometry import exit_factor
 from ..model.renderer import SkinRenderer
 from .grids import MapLayout
-from .least_squares import forward_jacobian
+from .least_squares import reverse_jacobian
 from .unknowns import Level, extend, extension_index, params_of_rows, to_params
 
 __all__ = ["Evaluation", "HomogeneousProblem", "LevelProblem", "OptimResult", "RenderCounter"]
@@ -180,10 +181,11 @@ class LevelProblem:
         if self.band_nodes_nm is None:
             return 1.0
         c, h, w = p.shape
-        r = self.renderer.model.diffuse_reflectance(SkinParams(*p.reshape(c, h * w).double().unbind(0)), self.band_nodes_nm)
-        r = r.reshape(h * w, -1, 3)
+        rows = _distinct(p.reshape(c, h * w))
+        r = self.renderer.model.diffuse_reflectance(SkinParams(*rows.double().unbind(0)), self.band_nodes_nm)
+        r = r.reshape(rows.shape[1], -1, 3)
         ratio = (r * self.band_weights.to(r)).sum(-1) / r[..., 0]
-        return ratio.T.reshape(-1, h, w).to(p.dtype)
+        return ratio.T.expand(-1, h * w).reshape(-1, h, w).to(p.dtype)
 
     def evaluate(self, x: torch.Tensor, log_scale: torch.Tensor, grad: bool = False) -> Evaluation:
         """Render, residual and loss at ``x``; with ``grad`` the exact gradient (one backward pass)."""
@@ -219,17 +221,32 @@ class LevelProblem:
         corrected as the render is: what the renderer gives for uniform skin under uniform light."""
         p = to_params(extend(x, self.index))
         c, h, w = p.shape
-        r = self.renderer.model.diffuse_reflectance(SkinParams(*p.reshape(c, h * w).unbind(0)), self.wavelength_nm, method="tables")
-        return (r.T.reshape(-1, h, w) * self.exit).to(p.dtype) * self.band_correction(p)
+        rows = _distinct(p.reshape(c, h * w))
+        r = self.renderer.model.diffuse_reflectance(SkinParams(*rows.unbind(0)), self.wavelength_nm, method="tables")
+        return (r.T.expand(-1, h * w).reshape(-1, h, w) * self.exit).to(p.dtype) * self.band_correction(p)
 
     def homogeneous_jacobian(self, x_pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Homogeneous reflectance factor ``(N, L)`` of each pixel's unknowns ``x_pixels`` ``(N, N_PARAMS)``
-        and its Jacobian ``(N, L, N_PARAMS)`` with respect to x (forward mode, one batched pass)."""
+        and its Jacobian ``(N, L, N_PARAMS)`` with respect to x (reverse mode, one batched pass per band)."""
         model = self.renderer.model
-        value, jac = forward_jacobian(
-            lambda xv: model.diffuse_reflectance(params_of_rows(xv), self.wavelength_nm, method="tables"), x_pixels.detach()
+        n = x_pixels.shape[0]
+        rows = _distinct(x_pixels.detach().T).T
+        value, jac = reverse_jacobian(
+            lambda xv: model.diffuse_reflectance(params_of_rows(xv), self.wavelength_nm, method="tables"), rows
         )
-        return (value * self.exit).to(x_pixels.dtype), (jac * self.exit).to(x_pixels.dtype)
+        return (value * self.exit).to(x_pixels.dtype).expand(n, -1), (jac * self.exit).to(x_pixels.dtype).expand(n, -1, -1)
+
+
+def _distinct(columns: torch.Tensor) -> torch.Tensor:
+    """``columns`` ``(C, M)``, or its first column ``(C, 1)`` where every column is that one: uniform skin
+    (every map one value, ``uniform.py``) is one homogeneous spectrum, evaluated once for all its pixels
+    and broadcast (the callers' ``expand``). Never where derivatives flow (a graph or forward-mode
+    tangents): equal values there are still each pixel's own unknowns."""
+    if columns.requires_grad or fwAD.unpack_dual(columns).tangent is not None:
+        return columns
+    if columns.shape[1] > 1 and bool((columns == columns[:, :1]).all()):
+        return columns[:, :1]
+    return columns
 
 
 class HomogeneousProblem(LevelProblem):

@@ -21,7 +21,7 @@ import time
 import torch
 
 from ..model import N_PARAMS, SkinParams
-from .least_squares import LAMBDA0, LAMBDA_MAX, LAMBDA_MIN, damped_step
+from .least_squares import LAMBDA0, LAMBDA_MAX, LAMBDA_MIN, damped_step, reverse_jacobian
 from .problem import HomogeneousProblem, OptimResult
 from .unknowns import X_LIMIT, to_params
 
@@ -29,14 +29,15 @@ __all__ = ["fit_uniform", "uniform_spectrum"]
 
 
 def uniform_spectrum(problem: HomogeneousProblem, theta: torch.Tensor) -> torch.Tensor:
-    """m(θ) ``(L,)``: the homogeneous reflectance factor of unknowns ``theta`` ``(N_PARAMS,)`` as
-    ``problem.homogeneous_image`` gives it at every pixel (differentiable in θ)."""
-    p = to_params(theta.view(N_PARAMS, 1, 1))
-    r = problem.renderer.model.diffuse_reflectance(SkinParams(*p.reshape(N_PARAMS, 1).unbind(0)), problem.wavelength_nm,
+    """m(θ) ``(M, L)``: the homogeneous reflectance factor of each row of unknowns ``theta`` ``(M, N_PARAMS)``
+    as ``problem.homogeneous_image`` gives it at every pixel (differentiable in θ)."""
+    m = theta.shape[0]
+    p = to_params(theta.T.reshape(N_PARAMS, m, 1))
+    r = problem.renderer.model.diffuse_reflectance(SkinParams(*p.reshape(N_PARAMS, m).unbind(0)), problem.wavelength_nm,
                                                     method="tables")
     correction = problem.band_correction(p)
-    correction = correction[:, 0, 0] if isinstance(correction, torch.Tensor) else correction
-    return r[0] * problem.exit * correction
+    correction = correction[:, :, 0].T if isinstance(correction, torch.Tensor) else correction
+    return r * problem.exit * correction
 
 
 def fit_uniform(problem: HomogeneousProblem, x0: torch.Tensor, log_scale0: torch.Tensor, settings, progress=None) -> OptimResult:
@@ -57,23 +58,23 @@ def fit_uniform(problem: HomogeneousProblem, x0: torch.Tensor, log_scale0: torch
     root = a.sqrt()
     free_scale = settings.free_scale
 
-    def residual(params: torch.Tensor) -> torch.Tensor:  # (L,): √A_b (s m_b − B_b/A_b)
-        th, ls = (params[:N_PARAMS], params[N_PARAMS]) if free_scale else (params, log_scale)
+    def residual(rows: torch.Tensor) -> torch.Tensor:  # (M, L): √A_b (s m_b − B_b/A_b) of each row of unknowns
+        th, ls = (rows[:, :N_PARAMS], rows[:, N_PARAMS:]) if free_scale else (rows, log_scale)
         return root * (torch.exp(ls) * uniform_spectrum(problem, th) - mean)
 
     point = torch.cat([theta, log_scale.view(1)]) if free_scale else theta
-    r = residual(point).detach()
+    r = residual(point[None])[0].detach()
     loss = 0.5 * float((r * r).sum())
     lam = torch.full((1,), LAMBDA0, dtype=dtype, device=theta.device)
     history = [(time.process_time(), loss)]
     converged, it = False, 0
     for it in range(1, settings.max_iterations + 1):
-        jac = torch.autograd.functional.jacobian(residual, point)  # (L, n)
+        jac = reverse_jacobian(residual, point[None])[1][0]  # (L, n)
         grad = jac.T @ r
         step = damped_step((jac.T @ jac)[None], grad[None], lam)[0]
         trial_point = point + step
         trial_point[:N_PARAMS] = trial_point[:N_PARAMS].clamp(-X_LIMIT, X_LIMIT)
-        trial = residual(trial_point).detach()
+        trial = residual(trial_point[None])[0].detach()
         trial_loss = 0.5 * float((trial * trial).sum())
         if trial_loss < loss:
             relative = (loss - trial_loss) / max(loss, 1e-300)

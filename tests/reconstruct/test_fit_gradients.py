@@ -145,3 +145,28 @@ def test_step_is_invariant_to_the_scale_of_an_unknown():
     a, b = step(jac), step(scaled)
     assert torch.allclose(b[:, 2] * 1e-5, a[:, 2], rtol=1e-6)
     assert torch.allclose(b[:, [0, 1, 3, 4]], a[:, [0, 1, 3, 4]], rtol=1e-6)
+
+
+def test_uniform_unknowns_keep_each_pixels_derivatives():
+    """Uniform skin is evaluated once for all its pixels (``problem._distinct``); where derivatives flow
+    — the exact gradient's backward pass, forward-mode tangents — each pixel keeps its own. Checked at
+    unknowns equal at every pixel, with the band model on (the band correction is where they meet)."""
+    g = torch.Generator().manual_seed(4)
+    level = Level((0.3 + 0.1 * torch.rand(3, SIZE, SIZE, generator=g)).double(), torch.ones(SIZE, SIZE, dtype=torch.bool), 1.0)
+    prob = LevelProblem(SkinRenderer(), level, WL, torch.ones(3, dtype=torch.bool), view_angle_deg=30.0, border_mm=1.0,
+                        band_fwhm_nm=10.0)
+    x0 = _x0()[:, :1, :1].expand(N_PARAMS, SIZE, SIZE).contiguous()
+    inputs = (x0.clone().requires_grad_(True), torch.tensor(0.02, dtype=torch.float64, requires_grad=True))
+    assert torch.autograd.gradcheck(_objective(prob), inputs, eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
+    rows = prob.at_pixels(x0)  # every row the same: one evaluation, broadcast
+    value, jac = prob.homogeneous_jacobian(rows)
+    one_value, one_jac = prob.homogeneous_jacobian(rows[:1])
+    assert value.shape == (SIZE * SIZE, 3) and jac.shape == (SIZE * SIZE, 3, N_PARAMS)
+    torch.testing.assert_close(value, one_value.expand_as(value), rtol=1e-14, atol=0)
+    torch.testing.assert_close(jac, one_jac.expand_as(jac), rtol=1e-14, atol=0)
+    image = prob.homogeneous_image(x0)
+    torch.testing.assert_close(image, image[:, :1, :1].expand_as(image), rtol=0, atol=0)
+    other = x0.clone()
+    other[0, 2, 3] += 0.1  # one pixel differs: every pixel its own again
+    changed = prob.homogeneous_image(other)
+    assert not torch.equal(changed[:, 2, 3], image[:, 2, 3]) and torch.equal(changed[:, 1, 1], image[:, 1, 1])
