@@ -7,8 +7,8 @@ the hand-over factor) are nearly all of that cost. At one band the five totals R
 depend on the two layers' σa alone (scattering, thickness and indices are the settings'; the
 interface absorbance only attenuates, DWRR08 Eq. 7), so they are tabulated once per set of bands on
 a grid of log σa_epidermis × log σa_dermis spanning every skin DWRR08 Table 1's bounds allow, and
-read by bicubic Hermite interpolation from the exact values and first derivatives at the nodes (the
-cross derivative by central differences of the exact first derivatives). One read gives each total
+read by bicubic Hermite interpolation from the exact values and first derivatives at the nodes
+(autodiff; the cross derivative by central differences of the exact first derivatives). One read gives each total
 and its two partials; the attenuation and the layer combination (Eq. 7 summed, ``combine_layers``)
 stay in closed form, so the Jacobian with respect to the five parameters is the chain rule through
 Eq. 11–12, with no autodiff in the fit's loop. The tables' error against the model they stand for is
@@ -23,7 +23,6 @@ from __future__ import annotations
 import itertools
 
 import torch
-import torch.autograd.forward_ad as fwAD
 
 from .layered import SkinModel
 from .params import N_PARAMS, SkinParams, layer_absorption_jacobian, parameter_bounds
@@ -35,6 +34,8 @@ __all__ = ["POINT_TABLE_NODES", "PointTables"]
 #: fourth order, so doubling the nodes divides it by ~16; 48 keeps the fit's model within 1e-6
 #: (relative) of the exact one over the whole box.
 POINT_TABLE_NODES = 48
+#: Bands whose node totals are differentiated at once in ``build`` (the autodiff graph's memory).
+_BUILD_BANDS = 16
 #: The five totals, in ``LayerTransforms`` order.
 _N_TOTALS = 5
 #: Hermite basis on [0, 1]: rows are the coefficients of t⁰…t³ for (f(0), f(1), f'(0), f'(1)).
@@ -63,7 +64,7 @@ class PointTables:
 
     @classmethod
     def build(cls, model: SkinModel, wavelength_nm: torch.Tensor, nodes: int = POINT_TABLE_NODES) -> "PointTables":
-        """Exact totals and their log-σa derivatives at the nodes (two forward-mode passes), then each
+        """Exact totals and their log-σa derivatives at the nodes (one backward pass per total), then each
         cell's bicubic Hermite coefficients."""
         if nodes < 4:
             raise ValueError(f"point tables need at least 4 nodes per axis, got {nodes}")
@@ -75,17 +76,27 @@ class PointTables:
         grid = log_lo[..., None] + step[..., None] * torch.arange(nodes, dtype=torch.float64)  # (2, L, S)
         u_epi = grid[0].T[:, None, :].expand(nodes, nodes, wl.numel()).contiguous()  # (S_epi, S_derm, L)
         u_derm = grid[1].T[None, :, :].expand(nodes, nodes, wl.numel()).contiguous()
-        zero = torch.zeros_like(u_epi)
 
-        def totals(ue, ud):
-            t = model.transforms_at(torch.exp(ue), torch.exp(ud), zero, wl, None, "exact", spectra)
-            return torch.stack([t.R1_plus, t.T1_plus, t.R1_minus, t.T1_minus, t.R2_plus])  # (5, S, S, L)
+        def totals(ue, ud, bands):
+            t = model.transforms_at(torch.exp(ue), torch.exp(ud), torch.zeros_like(ue), wl[bands], None, "exact",
+                                    model.spectra(wl[bands]))
+            return torch.stack([t.R1_plus, t.T1_plus, t.R1_minus, t.T1_minus, t.R2_plus])  # (5, S, S, l)
 
-        value = totals(u_epi, u_derm)
-        with fwAD.dual_level():
-            d_epi = fwAD.unpack_dual(totals(fwAD.make_dual(u_epi, torch.ones_like(u_epi)), u_derm)).tangent
-        with fwAD.dual_level():
-            d_derm = fwAD.unpack_dual(totals(u_epi, fwAD.make_dual(u_derm, torch.ones_like(u_derm)))).tangent
+        # every total at a node depends on that node's two σa alone, so the gradient of a total's sum
+        # over the grid is its derivative at each node: one backward pass per total (reverse mode;
+        # torch 2.13's forward mode takes a slow path at every operation with a constant operand, and
+        # its first use in a process costs ~2 s: measured, docs/model.md), bands in chunks (the graph's
+        # memory)
+        parts = []
+        for first in range(0, wl.numel(), _BUILD_BANDS):
+            bands = slice(first, first + _BUILD_BANDS)
+            ue, ud = u_epi[..., bands].clone().requires_grad_(True), u_derm[..., bands].clone().requires_grad_(True)
+            with torch.enable_grad():
+                graph = totals(ue, ud, bands)
+                partials = [torch.autograd.grad(graph[t].sum(), (ue, ud), retain_graph=t + 1 < _N_TOTALS)
+                            for t in range(_N_TOTALS)]
+            parts.append((graph.detach(), torch.stack([p[0] for p in partials]), torch.stack([p[1] for p in partials])))
+        value, d_epi, d_derm = (torch.cat([part[i] for part in parts], -1) for i in range(3))
         d_cross = 0.5 * (torch.gradient(d_epi, dim=2, edge_order=2)[0] / step[1]
                          + torch.gradient(d_derm, dim=1, edge_order=2)[0] / step[0])
         # to cell coordinates in [0, 1]²: derivatives times the steps

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from .least_squares import block_factor, block_solve, forward_jacobian
+from .least_squares import block_factor, block_solve, reverse_jacobian
 from .problem import LevelProblem
 from .unknowns import X_LIMIT, params_of_rows
 
@@ -153,7 +153,7 @@ def fit_grey_absorbance(problem: LevelProblem, x: torch.Tensor, log_scale: torch
     ev = ev0
     steps = 0
     for _ in range(ITERATIONS):
-        value, jac = forward_jacobian(hom, torch.cat([x_rows, p_rows[:, None]], 1).double())
+        value, jac = reverse_jacobian(hom, torch.cat([x_rows, p_rows[:, None]], 1).double())
         het = problem.at_pixels(ev.image)[rows].double()
         factor = (het / (value * problem.exit).clamp_min(1e-12)).clamp(0.0, 2.0) * float(torch.exp(ev.log_scale))
         j = jac[..., cols] * (problem.exit * factor * used.double())[..., None]  # (K, L, fine + 1)

@@ -46,10 +46,14 @@ from .unknowns import dparams_dx, extend, near_bound, pyramid, to_params, upsamp
 
 __all__ = ["DEFAULT_BAND_FWHM_NM", "DEFAULT_VIEW_ANGLE_DEG", "FitEvent", "MapFit", "band_fwhm_of", "fit_cube", "view_angle_of"]
 
-#: The homogeneous fit's coarsest level runs this many times, the window's light factor re-made each
-#: time at the median skin of the last (the first from the start, which ignores the window's edges and
-#: is 3% dark at 670 nm for it). Measured on a flat 32² cube: β_m's median error 0.099 with one pass,
-#: 0.014 with two, 0.006 with three (the renderer's fit: 0.009).
+#: The homogeneous fit makes the window's light factor on its coarsest level this many times: at the
+#: start's skin (which ignores the window's edges and is 3% dark at 670 nm for it), then at the skin of
+#: a uniform fit of the level (its light-weighted mean spectrum) under the factor before. The factors
+#: toward the skin are the Fourier-domain combination, the last a render; every pixel is fitted once,
+#: under the last. Measured on a flat 32² cube with every map per pixel (``forward: homogeneous``):
+#: β_m's median error 0.095 with one factor, 0.011 with two, 0.0071 with three, 0.0072 with four (with
+#: one ``auto``'s check fails and the renderer fits). Re-made after each per-pixel fit instead (the
+#: scheme before, three per-pixel fits): 0.099, 0.014, 0.006, at about twice the cost.
 LIGHT_FACTOR_PASSES = 3
 #: Where neither the settings nor the cube's header say: DWRR08 §6.1's camera, 30° off the flash axis,
 #: and its 10-nm band-pass filters.
@@ -507,11 +511,7 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
 
 def _widened(problem: LevelProblem, ev, jac, residual, x, sigma_pix, renderer_fit: bool) -> tuple[torch.Tensor, dict]:
     """σ ``(N, N_PARAMS)`` with the two terms ``uncertainty.py`` measures on the cube, and what they were."""
-    used = problem.band_weight > 0
-    n_used = int(used.sum())
-    n_unknowns = len(problem.layout.fine) * problem.n_pixels + problem.layout.n_nodes
-    dof = max(n_used * problem.n_pixels - n_unknowns, 1) / (n_used * problem.n_pixels)
-    sd_band = torch.sqrt((residual.double() ** 2).mean(0) / dof).clamp_min(1e-12)
+    sd_band = _band_sd(problem, residual, free_scale=False)
     rho = crosstalk_ratio(problem, ev, jac) if renderer_fit else torch.ones(N_PARAMS, dtype=torch.float64, device=jac.device)
     dpdx = problem.at_pixels(dparams_dx(x)).double()
     spread = subnode_sd(problem, jac, residual, sd_band, rho, dpdx)
@@ -528,15 +528,21 @@ def _widened(problem: LevelProblem, ev, jac, residual, x, sigma_pix, renderer_fi
     }
 
 
+def _band_sd(problem: LevelProblem, residual: torch.Tensor, free_scale: bool) -> torch.Tensor:
+    """Each band's residual σ ``(L,)`` from the loss pixels' residual ``(N, L)``, corrected for the degrees of
+    freedom the fit took (its per-pixel maps, nodes and, with ``free_scale``, the scale)."""
+    n_used = int((problem.band_weight > 0).sum())
+    n_unknowns = len(problem.layout.fine) * problem.n_pixels + problem.layout.n_nodes + int(free_scale)
+    dof = max(n_used * problem.n_pixels - n_unknowns, 1) / (n_used * problem.n_pixels)
+    return torch.sqrt((residual.double() ** 2).mean(0) / dof).clamp_min(1e-12)
+
+
 def _sigma_shared(problem: LevelProblem, jac, col, residual, x, free_scale: bool) -> torch.Tensor:
     """Per-pixel standard deviation of each parameter ``(N, N_PARAMS)`` when maps share nodes: the inverse
     Fisher information of the whole fit (``schur.marginal_variance``), each band's noise σ from the
     residual, mapped from x to the parameter at the pixel."""
     used = problem.band_weight > 0
-    n_used = int(used.sum())
-    n_unknowns = len(problem.layout.fine) * problem.n_pixels + problem.layout.n_nodes + int(free_scale)
-    dof = max(n_used * problem.n_pixels - n_unknowns, 1) / (n_used * problem.n_pixels)
-    sd_band = torch.sqrt((residual.double() ** 2).mean(0) / dof).clamp_min(1e-12)
+    sd_band = _band_sd(problem, residual, free_scale)
     weight = torch.where(used, 1.0 / sd_band, torch.zeros_like(sd_band))
     h, w = problem.level.shape
     cell = max(int(round(CLUSTER_MM / problem.level.mm_per_pixel)), 1)
