@@ -39,7 +39,7 @@ from .optimizers import METHODS, OptimResult
 from .problem import HomogeneousProblem, LevelProblem, RenderCounter
 from .schur import marginal_variance
 from .settings import FitSettings
-from .start import STARTS
+from .start import STARTS, mean_spectrum_start
 from .uniform import fit_uniform
 from .uncertainty import MODEL_FLOOR, MODEL_FLOOR_ABSOLUTE, crosstalk_ratio, model_floor, subnode_sd
 from .unknowns import dparams_dx, extend, near_bound, pyramid, to_params, upsample
@@ -228,27 +228,31 @@ def fit_cube(
         say(FitEvent("level", i, len(levels), sum(passes), result.evaluation.loss, pixels))
         return result
 
-    # the start, on the coarsest level (and, with map_grids: auto, the grids from this cube's information)
+    # the start, on the coarsest level, where it is first needed (with map_grids: auto, the grids from this
+    # cube's information; forward: auto's homogeneous detour starts from the cube's mean spectrum and,
+    # on skin the renderer is not needed for, never needs the per-pixel start)
     problem = level_problem(levels[0], cells)
     say(FitEvent("start", 0, len(levels), pixels=pixels))
-    x = STARTS[settings.start](problem, dtype=dtype, device=dev)
+    x = None
     choice = None
     if settings.map_grids == "auto":
+        x = STARTS[settings.start](problem, dtype=dtype, device=dev)
         choice = choose_map_grids(problem, x, noise_at(levels[0]), cells, cube.mm_per_pixel)
         cells = choice.cells_mm
         problem = level_problem(levels[0], cells)
-    if not problem.layout.per_pixel:  # nodes from the per-pixel start's interquartile range: its noisy
-        # fits put many values at the start's bounds, from which the first steps are rejected (docs/reconstruct.md)
-        x = problem.layout.assemble(x, problem.layout.project(x, clip_quantile=0.25))
+        x = _on_nodes(problem, x)
     log_scale = torch.zeros((), dtype=dtype, device=dev)
 
     result, forward = None, None
     if settings.forward != "heterogeneous":
-        result, forward, fitted_cells = _homogeneous_fit(levels, problem, x, log_scale, cells, settings.forward,
+        x_start = x if x is not None else mean_spectrum_start(problem, dtype=dtype, device=dev)
+        result, forward, fitted_cells = _homogeneous_fit(levels, problem, x_start, log_scale, cells, settings.forward,
                                                          level_problem, noise_at, fit_level)
         if result is not None:
             cells = fitted_cells
     if result is None:  # the renderer's fit, from the start
+        if x is None:
+            x = _on_nodes(problem, STARTS[settings.start](problem, dtype=dtype, device=dev))
         for i, level in enumerate(levels):
             if i:
                 problem = level_problem(level, cells)
@@ -273,6 +277,14 @@ def fit_cube(
         forward_choice=forward.as_dict() if forward else None,
         absorbers=absorber.as_dict() if absorber else None,
     )
+
+
+def _on_nodes(problem: LevelProblem, x: torch.Tensor) -> torch.Tensor:
+    """The per-pixel start ``x`` with the maps on nodes made from its interquartile range: its noisy fits
+    put many values at the start's bounds, from which the first steps are rejected (docs/reconstruct.md)."""
+    if problem.layout.per_pixel:
+        return x
+    return problem.layout.assemble(x, problem.layout.project(x, clip_quantile=0.25))
 
 
 def _absorber_fit(problem: LevelProblem, result: OptimResult, i: int, noise_at, settings: FitSettings,
@@ -345,10 +357,11 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
     skin = x  # the light factor's skin: the start's, then the level's uniform fits (its mean spectrum)
     for _ in range(LIGHT_FACTOR_PASSES - 1):  # the factors toward it need no render (within 1% here)
         hom = level_problem(levels[0], cells, uniform_light_factor(problem, skin))
-        skin = fit_level(0, hom, skin, log_scale, "homogeneous", fit_uniform).x
+        uniform_fit = fit_level(0, hom, skin, log_scale, "homogeneous", fit_uniform)
+        skin, log_scale = uniform_fit.x, uniform_fit.log_scale
     factor = window_light_factor(problem, skin)
     hom = level_problem(levels[0], cells, factor)
-    result = fit_level(0, hom, x, log_scale, "homogeneous")  # every pixel, from the start
+    result = fit_level(0, hom, skin, log_scale, "homogeneous")  # every pixel, from the uniform skin
     x, log_scale = extend(result.x, hom.index), result.log_scale
     uniform = False
     if setting == "auto":

@@ -45,7 +45,9 @@ class FitSettings(Strict):
     )
     start: Literal["homogeneous", "paper"] = Field(
         "homogeneous",
-        description="homogeneous: a point-spectrum fit of every pixel of the coarsest level; paper: DWRR08's pale skin.",
+        description=("homogeneous: a point-spectrum fit of every pixel of the coarsest level; paper: DWRR08's pale skin. "
+                     "The renderer's fit starts there; forward: auto's homogeneous fit starts from a point fit of the "
+                     "cube's mean spectrum."),
     )
     coarsest_px: int = Field(
         64, ge=0, le=4096, description="Coarse-to-fine: halve the cube while its longer side exceeds this (0: fit the full grid only)."

@@ -23,7 +23,7 @@ from .problem import LevelProblem
 from .spectrum_fit import PAPER_START, fit_spectra
 from .unknowns import X_START_LIMIT, extend, from_params
 
-__all__ = ["STARTS", "homogeneous_start", "paper_start"]
+__all__ = ["STARTS", "homogeneous_start", "mean_spectrum_start", "paper_start"]
 
 
 def paper_start(problem: LevelProblem, dtype=torch.float32, device=None) -> torch.Tensor:
@@ -32,17 +32,31 @@ def paper_start(problem: LevelProblem, dtype=torch.float32, device=None) -> torc
     return from_params(p, X_START_LIMIT).to(dtype=dtype, device=device).contiguous()
 
 
+def _inverted(problem: LevelProblem, spectra: torch.Tensor) -> torch.Tensor:
+    """The homogeneous inversion of reflectance-factor ``spectra`` ``(M, L)`` at the problem's used bands:
+    parameters ``(M, N_PARAMS)``."""
+    used = problem.band_weight > 0
+    model = SkinModel(problem.renderer.settings, problem.renderer.model.cache_dir)
+    fit = fit_spectra((spectra[:, used].to(torch.float64) / problem.exit).cpu(), problem.wavelength_nm[used.cpu()].cpu(), model,
+                      max_iterations=50, method="tables")
+    return fit.params.as_tensor()
+
+
 def homogeneous_start(problem: LevelProblem, dtype=torch.float32, device=None) -> torch.Tensor:
     """Per-pixel homogeneous inversion of the loss pixels; the others follow their nearest one."""
-    used = problem.band_weight > 0
-    spectra = (problem.target[:, used].to(torch.float64) / problem.exit).cpu()
-    model = SkinModel(problem.renderer.settings, problem.renderer.model.cache_dir)
-    fit = fit_spectra(spectra, problem.wavelength_nm[used.cpu()].cpu(), model, max_iterations=50, method="tables")
     h, w = problem.level.shape
     p = torch.tensor([PAPER_START[n] for n in PARAMETER_NAMES], dtype=torch.float64).view(N_PARAMS, 1).repeat(1, h * w)
-    p[:, problem.pixels.cpu()] = fit.params.as_tensor().T
+    p[:, problem.pixels.cpu()] = _inverted(problem, problem.target).T
     x = from_params(p.reshape(N_PARAMS, h, w), X_START_LIMIT).to(dtype=dtype, device=device)
     return extend(x, problem.index)
+
+
+def mean_spectrum_start(problem: LevelProblem, dtype=torch.float32, device=None) -> torch.Tensor:
+    """The homogeneous inversion of the loss pixels' mean spectrum, everywhere: one point fit instead of
+    one per pixel, where the skin is to be fitted as uniform first (``forward: auto``'s light factor)."""
+    h, w = problem.level.shape
+    p = _inverted(problem, problem.target.mean(0, keepdim=True))[0]
+    return from_params(p.view(N_PARAMS, 1, 1), X_START_LIMIT).expand(N_PARAMS, h, w).to(dtype=dtype, device=device).contiguous()
 
 
 #: ``FitSettings.start`` → the function that makes the coarsest level's unknowns.
