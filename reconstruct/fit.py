@@ -47,13 +47,13 @@ from .unknowns import dparams_dx, extend, near_bound, pyramid, to_params, upsamp
 __all__ = ["DEFAULT_BAND_FWHM_NM", "DEFAULT_VIEW_ANGLE_DEG", "FitEvent", "MapFit", "band_fwhm_of", "fit_cube", "view_angle_of"]
 
 #: The homogeneous fit makes the window's light factor on its coarsest level this many times: at the
-#: start's skin (which ignores the window's edges and is 3% dark at 670 nm for it), then at the skin of
-#: a uniform fit of the level (its light-weighted mean spectrum) under the factor before. The factors
+#: skin of a point fit of the level's mean spectrum (which ignores the window's edges), then at the skin
+#: of a uniform fit of the level (its light-weighted mean spectrum) under the factor before. The factors
 #: toward the skin are the Fourier-domain combination, the last a render; every pixel is fitted once,
-#: under the last. Measured on a flat 32² cube with every map per pixel (``forward: homogeneous``):
-#: β_m's median error 0.095 with one factor, 0.011 with two, 0.0071 with three, 0.0072 with four (with
-#: one ``auto``'s check fails and the renderer fits). Re-made after each per-pixel fit instead (the
-#: scheme before, three per-pixel fits): 0.099, 0.014, 0.006, at about twice the cost.
+#: under the last, from the uniform skin. Measured on a flat 32² cube with every map per pixel
+#: (``forward: homogeneous``): β_m's median error 0.075 with one factor, 0.0092 with two, 0.0067 with
+#: three, 0.0070 with four (with one ``auto``'s check fails and the renderer fits). Re-made after each
+#: of three per-pixel fits instead (the scheme before): 0.099, 0.014, 0.006, at several times the cost.
 LIGHT_FACTOR_PASSES = 3
 #: Where neither the settings nor the cube's header say: DWRR08 §6.1's camera, 30° off the flash axis,
 #: and its 10-nm band-pass filters.
