@@ -470,9 +470,11 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
                             absorbance_wavelength_nm=problem.wavelength_nm.clone())
 
     jac, col = curvature_and_columns(problem, ev)
-    lam = torch.full((problem.n_pixels,), 1e-3, dtype=jac.dtype, device=jac.device)
-    grad = ev.grad if ev.grad is not None else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
-    dx = level_step(problem, jac, col, grad, ev.residual, lam, 1e-3, settings.free_scale)[0]
+    dx = torch.zeros(problem.n_pixels, N_PARAMS, dtype=jac.dtype, device=jac.device)
+    if problem.layout.fine:  # the step still proposed moves a pixel's own maps (none: every map on nodes)
+        lam = torch.full((problem.n_pixels,), 1e-3, dtype=jac.dtype, device=jac.device)
+        grad = ev.grad if ev.grad is not None else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
+        dx = level_step(problem, jac, col, grad, ev.residual, lam, 1e-3, settings.free_scale)[0]
     # uncertainty from the unweighted problem: the robust weights shape the estimate, not the camera's noise
     problem.pixel_weight = None
     jac, col = curvature_and_columns(problem, ev)

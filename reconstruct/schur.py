@@ -121,13 +121,15 @@ def marginal_variance(jac: torch.Tensor, col: torch.Tensor, free_scale: bool, la
         robust = cov @ (u.T @ u) @ cov
         scale = torch.sqrt((torch.diagonal(robust) / torch.diagonal(cov).clamp_min(1e-300)).clamp_min(1.0))
         cov = cov * scale[:, None] * scale[None, :]  # each node's variance the larger, correlations kept
-    local = cov[idx[:, :, None], idx[:, None, :]]  # (N, m, m)
     var = torch.empty(n, N_PARAMS, dtype=torch.float64, device=jac.device)
-    eye = torch.eye(len(layout.fine), dtype=torch.float64, device=jac.device).expand(n, -1, -1)
-    a_inv = block_solve(factor, eye.clone())
-    var[:, layout.fine] = torch.diagonal(a_inv + x @ local @ x.transpose(1, 2), dim1=1, dim2=2)
+    if layout.fine:
+        local = cov[idx[:, :, None], idx[:, None, :]]  # (N, m, m)
+        eye = torch.eye(len(layout.fine), dtype=torch.float64, device=jac.device).expand(n, -1, -1)
+        a_inv = block_solve(factor, eye.clone())
+        var[:, layout.fine] = torch.diagonal(a_inv + x @ local @ x.transpose(1, 2), dim1=1, dim2=2)
     w = wts.double().reshape(n, nc, 4)
     for q, k in enumerate(layout.coarse):
-        block = local[:, 4 * q: 4 * q + 4, 4 * q: 4 * q + 4]
+        corners = idx[:, 4 * q: 4 * q + 4]
+        block = cov[corners[:, :, None], corners[:, None, :]]  # (N, 4, 4): the map's own nodes only
         var[:, k] = (w[:, q, :, None] * block * w[:, q, None, :]).sum((1, 2))
     return var.clamp_min(0.0)

@@ -3,6 +3,7 @@ with clusters), each against a case whose answer is known by construction."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from skinlayers.model import N_PARAMS, PARAMETER_NAMES
@@ -90,3 +91,39 @@ def test_cluster_robust_node_variance_grows_with_a_correlated_residual():
     assert torch.allclose(plain[:, layout.fine], white[:, layout.fine], rtol=0.5)
     assert float((white[:, hd] / plain[:, hd]).median()) < 2.0
     assert float((correlated[:, hd] / plain[:, hd]).median()) > 8.0
+
+
+@pytest.mark.parametrize("cells", [{"C_m": 0.0, "beta_m": 0.8, "C_he": 0.0, "C_bc": 100.0, "C_hd": 0.4},
+                                   dict.fromkeys(PARAMETER_NAMES, 100.0)], ids=["pixels and nodes", "every map one value"])
+def test_marginal_variance_is_the_dense_inverse_fisher_information(cells):
+    """Each pixel's variance from the Schur elimination equals the diagonal of the dense (JᵀJ)⁻¹ over
+    every unknown at once (each pixel's own maps, every node, the scale), mapped onto the pixel by the
+    bilinear weights: with maps per pixel and on nodes, and with every map one value (uniform skin)."""
+    size = 8
+    layout = MapLayout((size, size), 0.1, cells)
+    pixels = torch.arange(size * size)
+    g = torch.Generator().manual_seed(5)
+    n, bands = pixels.numel(), 9
+    jac = torch.randn(n, bands, N_PARAMS, generator=g, dtype=torch.float64)
+    col = torch.rand(n, bands, generator=g, dtype=torch.float64) + 0.5
+    var = marginal_variance(jac, col, True, layout, pixels)
+    n_f, fine = len(layout.fine), layout.fine
+    columns = n * n_f + layout.n_nodes + 1
+    dense = torch.zeros(n * bands, columns, dtype=torch.float64)
+    idx, wts = layout.local(pixels)
+    for p in range(n):
+        rows = slice(p * bands, (p + 1) * bands)
+        dense[rows, p * n_f:(p + 1) * n_f] = jac[p][:, fine]
+        for q, k in enumerate(layout.coarse):
+            for c in range(4):
+                dense[rows, n * n_f + idx[p, 4 * q + c]] += jac[p, :, k] * wts[p, 4 * q + c].double()
+        dense[rows, -1] = col[p]
+    cov = torch.linalg.inv(dense.T @ dense)
+    # 1e-7: ``least_squares.block_factor`` adds 1e-9 to the Jacobi-scaled blocks' diagonal (measured 1.1e-9 apart)
+    for p in range(n):
+        for j, k in enumerate(fine):
+            torch.testing.assert_close(var[p, k], cov[p * n_f + j, p * n_f + j], rtol=1e-7, atol=0)
+        for q, k in enumerate(layout.coarse):
+            nodes = n * n_f + idx[p, 4 * q: 4 * q + 4]
+            w = wts[p, 4 * q: 4 * q + 4].double()
+            torch.testing.assert_close(var[p, k], w @ cov[nodes][:, nodes] @ w, rtol=1e-7, atol=0)
