@@ -1,5 +1,6 @@
 """Uniform skin: every map one value for the patch, fitted as one spectrum (``forward: auto`` on a cube
-whose maps show no structure, ``fidelity.spatial_structure``).
+whose maps show no structure, ``fidelity.spatial_structure``; and, on every cube ``auto`` fits with the
+homogeneous model, the skin its coarsest level's light factor is made at).
 
 For uniform skin the model at pixel p and band b is s · m_b(θ) · f_b(p): one homogeneous spectrum
 m(θ) of the five unknowns θ (R_d from the renderer's tables, the exit factor, the band correction)
