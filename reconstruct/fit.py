@@ -370,8 +370,8 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
             return renderer_needed()
         choice.structure = spatial_structure(hom.layout, x, hom.mask, levels[0].mm_per_pixel)
         uniform = choice.uniform
-        if choice.constant_maps and not uniform:  # maps with no structure: one value for the patch, refitted so
-            cells = {**cells, **dict.fromkeys(choice.constant_maps, PATCH_MM)}
+        cells = {**cells, **dict.fromkeys(choice.constant_maps, PATCH_MM)}  # maps with no structure: one value
+        if choice.constant_maps and not uniform:  # refitted so on this level
             hom = level_problem(levels[0], cells, factor)
             x = hom.layout.assemble(x, hom.layout.project(x))
             result = fit_level(0, hom, x, log_scale, "homogeneous")
@@ -381,7 +381,6 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
         # its light factor made from the skin found (the Fourier-domain combination: no render); the
         # homogeneous model of uniform skin under the window's light is the render (Eq. 3), so the fit's
         # own evaluation is the renderer's
-        cells = {**cells, **dict.fromkeys(choice.constant_maps, PATCH_MM)}
         x = upsample(x, levels[last].shape)
         fine = level_problem(levels[last], cells)
         factor = uniform_light_factor(fine, x) if last > 0 else window_light_factor(fine, x)

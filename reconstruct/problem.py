@@ -219,7 +219,11 @@ class LevelProblem:
     def homogeneous_image(self, x: torch.Tensor) -> torch.Tensor:
         """Each pixel's homogeneous reflectance factor ``(L, H, W)`` of unknowns ``(N_PARAMS, H, W)``, band
         corrected as the render is: what the renderer gives for uniform skin under uniform light."""
-        p = to_params(extend(x, self.index))
+        return self.homogeneous_of(to_params(extend(x, self.index)))
+
+    def homogeneous_of(self, p: torch.Tensor) -> torch.Tensor:
+        """``homogeneous_image`` of parameters ``p`` ``(N_PARAMS, H, W)`` (any grid: ``uniform.py`` asks it
+        of its candidate skins as ``(N_PARAMS, M, 1)``) → ``(L, H, W)``."""
         c, h, w = p.shape
         rows = _distinct(p.reshape(c, h * w))
         r = self.renderer.model.diffuse_reflectance(SkinParams(*rows.unbind(0)), self.wavelength_nm, method="tables")

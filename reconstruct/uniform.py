@@ -21,7 +21,7 @@ import time
 
 import torch
 
-from ..model import N_PARAMS, SkinParams
+from ..model import N_PARAMS
 from .least_squares import LAMBDA0, LAMBDA_MAX, LAMBDA_MIN, damped_step, reverse_jacobian
 from .problem import HomogeneousProblem, OptimResult
 from .unknowns import X_LIMIT, to_params
@@ -32,13 +32,7 @@ __all__ = ["fit_uniform", "uniform_spectrum"]
 def uniform_spectrum(problem: HomogeneousProblem, theta: torch.Tensor) -> torch.Tensor:
     """m(θ) ``(M, L)``: the homogeneous reflectance factor of each row of unknowns ``theta`` ``(M, N_PARAMS)``
     as ``problem.homogeneous_image`` gives it at every pixel (differentiable in θ)."""
-    m = theta.shape[0]
-    p = to_params(theta.T.reshape(N_PARAMS, m, 1))
-    r = problem.renderer.model.diffuse_reflectance(SkinParams(*p.reshape(N_PARAMS, m).unbind(0)), problem.wavelength_nm,
-                                                    method="tables")
-    correction = problem.band_correction(p)
-    correction = correction[:, :, 0].T if isinstance(correction, torch.Tensor) else correction
-    return r * problem.exit * correction
+    return problem.homogeneous_of(to_params(theta.T.reshape(N_PARAMS, theta.shape[0], 1)))[:, :, 0].T
 
 
 def fit_uniform(problem: HomogeneousProblem, x0: torch.Tensor, log_scale0: torch.Tensor, settings, progress=None) -> OptimResult:
