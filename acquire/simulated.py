@@ -277,6 +277,30 @@ class SimulatedBench:
             if progress is not None:
                 progress(i + 1, len(self.rig.bands))
 
+    def band_renders(self) -> dict[str, torch.Tensor]:
+        """Every band's skin as rendered (each band rendered now if it was not yet), stacked in the rig's
+        band order for keeping: ``channels`` ``(L, 3, N, N)``, ``truth`` ``(L, N, N)`` and, rendered by
+        transport, ``std_error`` ``(L, N, N)`` (float32, CPU)."""
+        renders = [self.render_band(b.wavelength_nm) for b in self.rig.bands]
+        out = {"channels": torch.stack([r.channels for r in renders]).cpu(), "truth": torch.stack([r.truth for r in renders]).cpu()}
+        if renders[0].truth_std_error is not None:
+            out["std_error"] = torch.stack([r.truth_std_error for r in renders]).cpu()
+        return out
+
+    def adopt_renders(self, kept: dict[str, torch.Tensor]) -> None:
+        """Photograph skin rendered earlier (``band_renders`` of a bench with the same rig, scene, seed and
+        truth settings; e.g. a shipped Monte Carlo) instead of rendering it again."""
+        n, bands = self.truth_size_px, self.rig.bands
+        if tuple(kept["truth"].shape) != (len(bands), n, n) or tuple(kept["channels"].shape) != (len(bands), 3, n, n):
+            raise SimulationError(f"kept band renders of shape {tuple(kept['truth'].shape)} do not fit this bench's "
+                                  f"{len(bands)} bands on a {n}×{n} px truth grid")
+        se = kept.get("std_error")
+        for i, b in enumerate(bands):
+            self._renders[b.wavelength_nm] = BandRender(
+                self.spectra[b.wavelength_nm], kept["channels"][i].to(self.device, torch.float32),
+                kept["truth"][i].to(self.device, torch.float32), 0.0,
+                None if se is None else se[i].to(self.device, torch.float32))
+
     def truth_reflectance(self) -> torch.Tensor:
         """The true reflectance factor per band on the calibrated cube grid ``(L, cube_px, cube_px)``:
         the window's truth box-averaged from the truth grid."""

@@ -14,7 +14,7 @@ driver", Battiti 1989), starting so that the largest change is ``learning_rate``
 
 Both test convergence over a window of steps (their single steps are too small for the per-step
 test, which stopped the baseline after a few steps far above the noise): relative loss decrease over the last
-``_WINDOW`` steps below ftol; at most ``_FIRST_ORDER_CAP`` × max_iterations steps (600 by default; the
+``_WINDOW`` steps below ftol; at most ``FIRST_ORDER_CAP`` × max_iterations steps (600 by default; the
 paper ran 200–500).
 """
 
@@ -28,10 +28,10 @@ from ..model import N_PARAMS
 from .problem import LevelProblem, OptimResult
 from .unknowns import X_LIMIT
 
-__all__ = ["adam", "paper_forward_differences"]
+__all__ = ["FIRST_ORDER_CAP", "adam", "paper_forward_differences"]
 
 _WINDOW = 20
-_FIRST_ORDER_CAP = 10  # first-order methods get this many times the Gauss–Newton iteration cap
+FIRST_ORDER_CAP = 10  # first-order methods get this many times the Gauss–Newton iteration cap
 
 
 def _window_converged(history: list[tuple[float, float]], ftol: float) -> bool:
@@ -49,7 +49,7 @@ def paper_forward_differences(problem: LevelProblem, x0, log_scale0, settings, p
     eta = None
     converged = False
     it = 0
-    for it in range(1, _FIRST_ORDER_CAP * settings.max_iterations + 1):
+    for it in range(1, FIRST_ORDER_CAP * settings.max_iterations + 1):
         grad = torch.empty(problem.n_pixels, N_PARAMS, dtype=x0.dtype, device=x0.device)
         for k in range(N_PARAMS):
             shifted = ev.x.clone()
@@ -92,7 +92,7 @@ def adam(problem: LevelProblem, x0, log_scale0, settings, progress=None) -> Opti
     v = torch.zeros_like(m)
     converged = False
     it = 0
-    for it in range(1, _FIRST_ORDER_CAP * settings.max_iterations + 1):
+    for it in range(1, FIRST_ORDER_CAP * settings.max_iterations + 1):
         col = problem.at_pixels(ev.image) * torch.exp(ev.log_scale) * problem.row_weight
         g_scale = (col * ev.residual).sum() if settings.free_scale else torch.zeros((), dtype=x.dtype)
         # per-pixel gradient; the scale's share is spread over the pixels so its moments stay comparable

@@ -14,6 +14,7 @@ import sys
 import typer
 
 from . import demo as demo_cli
+from . import tradeoff as tradeoff_analysis
 from .acquire import cli as acquire_cli
 from .calibration import cli as calibration_cli
 from .formats.errors import SkinlayersError
@@ -35,6 +36,7 @@ acquire_cli.register(app)
 calibration_cli.register(app)
 reconstruct_cli.register(app)
 demo_cli.register(app)
+tradeoff_analysis.register(app)
 
 
 def main() -> None:

@@ -20,7 +20,7 @@ from .formats.errors import InputError
 from .formats.outputs import refuse_inside_session
 from .formats.version import software_version
 
-__all__ = ["accuracy_against_truth", "demo", "register"]
+__all__ = ["accuracy_against_truth", "demo", "map_errors", "register", "session_rig", "simulate_session"]
 
 #: Folder the demo writes to when none is given; taken with a suffix (-2, -3, …) when it exists.
 DEFAULT_FOLDER = "skinlayers-demo"
@@ -50,6 +50,13 @@ def demo_scene() -> dict:
     return scene
 
 
+def session_rig(size: int):
+    """The default rig at a ``size``² cube, its camera simulated (as the demo photographs with)."""
+    from .acquire.rig import load_rig  # noqa: PLC0415
+
+    return load_rig(geometry={"cube_px": size, "rectify_px": max(2 * size, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
+
+
 def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> dict:
     """Fitted maps against the simulation's truth (``truth/maps.exr`` box-averaged to the fit's grid):
     per parameter the median error over the pixels in the fit (relative; β_m absolute), the truth's
@@ -59,10 +66,8 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
     veins, which the fit leaves to the residual) are counted out, and the count is given."""
     import numpy as np  # noqa: PLC0415
     import torch  # noqa: PLC0415
-    import torch.nn.functional as F  # noqa: PLC0415
 
     from .formats.exr import read_exr  # noqa: PLC0415
-    from .model import PARAMETER_NAMES  # noqa: PLC0415
     from .model.maps_io import read_maps  # noqa: PLC0415
     from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
 
@@ -71,23 +76,13 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
     channels, _ = read_exr(reconstruction / "maps.exr")
     flags = torch.as_tensor(np.asarray(channels["flags"])).to(torch.int64)
     keep = (((flags >> FLAG_BITS["masked"]) & 1) == 0) & (((flags >> FLAG_BITS["high_residual"]) & 1) == 0)
-    k = truth.shape[-1] // fit.shape[-1]
     summary = json.loads((reconstruction / "fit.json").read_text())
     out: dict = {"pixels": int(keep.sum()), "high_residual_pixels": int(((flags >> FLAG_BITS["high_residual"]) & 1).sum()),
-                 "parameters": {}}
-    for name in PARAMETER_NAMES:
-        t = F.avg_pool2d(getattr(truth, name)[None].double(), k)[0, 0] if k > 1 else getattr(truth, name)[0].double()
-        f = getattr(fit, name)[0].double()
-        err = (f - t)[keep]
-        relative = name != "beta_m"
-        value = (err.abs() / t[keep].clamp_min(1e-12)).median() if relative else err.abs().median()
+                 "parameters": map_errors(truth, fit, keep)}
+    for name, entry in out["parameters"].items():
         sigma = channels.get(f"sigma_{name}")
-        out["parameters"][name] = {
-            "median_error": float(value), "error_kind": "relative" if relative else "absolute",
-            "truth_median": float(t[keep].median()), "fit_median": float(f[keep].median()),
-            "sigma_median": float(np.nanmedian(np.asarray(sigma)[keep.numpy()])) if sigma is not None else None,
-            "determined": summary["parameters"][name].get("determined", True),
-        }
+        entry["sigma_median"] = float(np.nanmedian(np.asarray(sigma)[keep.numpy()])) if sigma is not None else None
+        entry["determined"] = summary["parameters"][name].get("determined", True)
     cube_channels, _ = read_exr(cube)
     truth_r, _ = read_exr(session / "truth" / "reflectance.exr")
     bands = [f"{w:g}" for w in summary["wavelengths_nm"]]
@@ -96,6 +91,29 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
     if truth_r[f"R_{bands[0]}"].shape == cube_channels[f"R_{bands[0]}"].shape:
         noise = np.stack([np.asarray(cube_channels[f"R_{b}"]) - np.asarray(truth_r[f"R_{b}"]) for b in used])
         out["cube_noise_rms"] = float(np.sqrt(np.mean(noise[:, keep.numpy()] ** 2)))
+    return out
+
+
+def map_errors(truth, fit, keep) -> dict:
+    """Per map, the fit's median error against the truth over the ``keep`` pixels ``(H, W)`` of the fit's
+    grid (the truth ``SkinMaps`` box-averaged onto it): relative, β_m absolute; the truth's and the fit's
+    medians."""
+    import torch.nn.functional as F  # noqa: PLC0415
+
+    from .model import PARAMETER_NAMES  # noqa: PLC0415
+
+    k = truth.shape[-1] // fit.shape[-1]
+    keep = keep.to("cpu")
+    out = {}
+    for name in PARAMETER_NAMES:
+        t = getattr(truth, name)[None].double().cpu()
+        t = (F.avg_pool2d(t, k) if k > 1 else t)[0, 0]
+        f = getattr(fit, name)[0].double().cpu()
+        err = (f - t)[keep]
+        relative = name != "beta_m"
+        value = (err.abs() / t[keep].clamp_min(1e-12)).median() if relative else err.abs().median()
+        out[name] = {"median_error": float(value), "error_kind": "relative" if relative else "absolute",
+                     "truth_median": float(t[keep].median()), "fit_median": float(f[keep].median())}
     return out
 
 
@@ -160,7 +178,6 @@ def demo(
     """
     import yaml  # noqa: PLC0415
 
-    from .acquire.rig import load_rig  # noqa: PLC0415
     from .acquire.simulation_settings import truth_overrides  # noqa: PLC0415
 
     if size < 16 or size % 8:
@@ -179,7 +196,7 @@ def demo(
     folder = out if out is not None else fresh_folder(Path(DEFAULT_FOLDER))
     folder.mkdir(parents=True, exist_ok=True)
     session, calibrated, reconstruction = folder / "session", folder / "calibrated", folder / "reconstruction"
-    rig = load_rig(geometry={"cube_px": size, "rectify_px": max(2 * size, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
+    rig = session_rig(size)
     (folder / "rig.yaml").write_text(yaml.safe_dump(rig.model_dump(mode="json"), sort_keys=False))
     if scene is None:
         scene = folder / "scene.yaml"
@@ -214,15 +231,19 @@ def demo(
     typer.echo("times: " + ", ".join(f"{k[:-2]} {v:.0f} s" for k, v in times.items()))
 
 
-def simulate_session(session: Path, rig, scene: Path, seed: int, device: str = "auto", truth: dict | None = None) -> None:
+def simulate_session(session: Path, rig, scene: Path, seed: int, device: str = "auto", truth: dict | None = None,
+                     kept_renders: dict | None = None) -> None:
     """A simulated session on the instant simulated wheel, its truth beside the frames (``truth``: the
-    simulation's ``truth`` overrides, e.g. ``{"physics": "transport", "photons": 300_000}``)."""
+    simulation's ``truth`` overrides, e.g. ``{"physics": "transport", "photons": 300_000}``; ``kept_renders``:
+    the skin as rendered earlier with those settings, ``SimulatedBench.band_renders``, photographed anew)."""
     from .acquire.cli import capture_progress  # noqa: PLC0415
     from .acquire.connect import open_devices  # noqa: PLC0415
     from .acquire.session import AutoOperator, run_session  # noqa: PLC0415
 
     with open_devices(rig, simulated=True, scene=scene, seed=seed, wheel_time_scale=0.0,
                       device=None if device == "auto" else device, truth=truth or {}) as devices, capture_progress() as progress:
+        if kept_renders is not None:
+            devices.bench.adopt_renders(kept_renders)
         run_session(session, devices.rig, devices.wheel, devices.camera, AutoOperator(devices.place), subject="demo",
                     site="simulated forearm", operator_name="skinlayers demo", simulated=True, notes=devices.notes,
                     software_version=software_version(), progress=progress)
