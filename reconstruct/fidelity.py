@@ -103,6 +103,8 @@ def _lag_one(values: torch.Tensor, valid: torch.Tensor) -> tuple[float, int]:
     ``valid``, and the pairs: the values winsorised to their 1–99% range first, so a
     few pixels at a bound do not decide."""
     v = values.double()
+    if not bool(valid.any()):  # a window too small for any pixel inside its edge band
+        return 0.0, 0
     inside = v[valid]
     q = torch.quantile(inside, torch.tensor([0.01, 0.99], dtype=torch.float64, device=v.device))
     d = v.clamp(float(q[0]), float(q[1]))

@@ -15,7 +15,7 @@ import resource
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
@@ -73,7 +73,7 @@ class SweepTable:
         """Measure each case (a dict holding at least the key columns) not yet in the table: ``measure(case)``
         returns the row's other columns. Progress and the time left go to ``say`` (stderr by default)."""
         todo = [c for c in cases if self.key_of(c) not in self.done()]
-        progress = SweepProgress(len(todo), estimate_s, say or _stderr)
+        progress = SweepProgress(len(todo), estimate_s, say or _stderr, self.key)
         for case in todo:
             progress.starting(case)
             start = time.perf_counter()
@@ -91,13 +91,13 @@ class SweepProgress:
     total: int
     estimate_s: Callable[[dict], float] | None
     say: Callable[[str], None]
+    key: Sequence[str] = ()
     done: int = 0
     spent_s: float = 0.0
     estimated_done_s: float = 0.0
-    names: list[str] = field(default_factory=list)
 
     def starting(self, case: dict) -> None:
-        self.say(f"[{self.done + 1}/{self.total}] {_label(case)} …")
+        self.say(f"[{self.done + 1}/{self.total}] {_label({k: case[k] for k in self.key} if self.key else case)} …")
 
     def finished(self, case: dict, seconds: float, todo: list[dict]) -> None:
         self.done += 1
@@ -113,7 +113,7 @@ class SweepProgress:
 
 
 def _label(case: dict) -> str:
-    return ", ".join(f"{k} {v}" for k, v in case.items() if v not in (None, ""))
+    return ", ".join(str(v) for v in case.values() if v not in (None, ""))
 
 
 def _duration(seconds: float) -> str:

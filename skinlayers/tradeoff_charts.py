@@ -9,7 +9,7 @@ __all__ = ["draw_charts"]
 
 #: How the marked configurations are drawn: colour and label.
 MARKS = {"default": ("tab:red", "default (--model auto)"), "fixed": ("tab:orange", "--model fixed"),
-         "paper": ("tab:blue", "DWRR08's scheme")}
+         "paper": ("tab:blue", "DWRR08's scheme"), "paper, 10 steps": ("tab:blue", "DWRR08's scheme, 10 steps")}
 FORWARD_MARKS = {"default": ("tab:red", "default"), "paper": ("tab:blue", "DWRR08's renderer")}
 
 

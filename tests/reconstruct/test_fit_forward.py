@@ -204,3 +204,12 @@ def test_a_map_at_its_bound_is_reported_undetermined(small_fit, small_fit_settin
     assert entry["determined"] is False and "rests at a bound" in entry["undetermined_because"]
     assert all(fit_summary(pinned, settings)["parameters"][n]["determined"] == summary["parameters"][n]["determined"]
                for n in PARAMETER_NAMES if n != "C_bc")
+
+
+def test_structure_test_on_a_window_too_small_for_its_edge_band():
+    """A per-pixel map with no pixel inside the edge band (a 4×4 window at 0.1 mm: EDGE_MM reaches the
+    centre): no neighbour pairs, so no map is called constant, and nothing raises."""
+    shape = (4, 4)
+    layout = MapLayout(shape, 0.1, {"C_m": 0.0, "beta_m": 0.0, "C_he": 0.0, "C_bc": PATCH_MM, "C_hd": 0.0})
+    found = spatial_structure(layout, torch.randn(5, *shape), torch.ones(shape, dtype=torch.bool), 0.1)
+    assert found["C_m"]["pairs"] == 0 and not any(v["constant"] for v in found.values()), found
