@@ -20,7 +20,7 @@ from ..formats.cube import Cube
 from ..formats.errors import InputError
 from ..model import N_PARAMS
 
-__all__ = ["FLAG_BITS", "MIN_BANDS", "DataChecks", "check_cube", "flag_value"]
+__all__ = ["BAND_BIAS_LIMIT", "FLAG_BITS", "MIN_BANDS", "DataChecks", "band_bias", "band_bias_notes", "check_cube", "flag_value"]
 
 #: Bands a pixel needs: one per parameter and one for the global scale.
 MIN_BANDS = N_PARAMS + 1
@@ -34,6 +34,14 @@ FLAG_BITS = {
     "high_residual": 4,  # residual RMS above high_residual_factor × the median pixel's
     "band_excluded": 5,  # a dead band was left out of the whole fit
 }
+
+
+#: A used band whose fit stays off its measurement by more than this share of its mean reflectance, on
+#: average over the fitted pixels, is one no maps can match: its calibration (the Spectralon's certified
+#: value, the gray card, the filter) or the band's frames are suspect. Measured (docs/stability.md): on
+#: clean cubes every band within 0.15%; a green band 8% dark leaves 5.8–6.1%. A blue band's error the
+#: maps absorb (melanin), leaving no trace here.
+BAND_BIAS_LIMIT = 0.02
 
 
 def flag_value(name: str) -> int:
@@ -85,3 +93,26 @@ def check_cube(cube: Cube, saturated_reflectance: float, dead_band_reflectance: 
     if not bool(usable.any()):
         raise InputError("cube has no usable pixel (all masked or saturated)")
     return DataChecks(bands_used, usable, saturated, ~mask, notes, excluded)
+
+
+def band_bias(residual: torch.Tensor, measured: torch.Tensor, used: torch.Tensor, pixels: torch.Tensor) -> dict[int, float]:
+    """Per used band ``j`` its mean residual over its mean measured reflectance on ``pixels`` ``(H, W)``
+    (bool): ``residual`` and ``measured`` ``(L, H, W)``, ``used`` ``(L,)``. Signed: positive where the
+    fit is brighter than the band (the band reads dark)."""
+    out = {}
+    for j in range(residual.shape[0]):
+        if bool(used[j]) and bool(pixels.any()):
+            out[j] = float(residual[j][pixels].double().mean() / measured[j][pixels].double().mean().clamp_min(1e-12))
+    return out
+
+
+def band_bias_notes(bias: dict[int, float], wavelength_nm: list[float], limit: float = BAND_BIAS_LIMIT) -> list[str]:
+    """A line naming the bands whose ``bias`` exceeds ``limit``, the largest first (the likely culprit:
+    its neighbours are pulled the other way by the maps that half-match it), and what to check."""
+    off = sorted(((j, b) for j, b in bias.items() if abs(b) > limit), key=lambda jb: -abs(jb[1]))
+    if not off:
+        return []
+    listed = ", ".join(f"{wavelength_nm[j]:g} nm {abs(b):.1%} {'dark' if b > 0 else 'bright'}" for j, b in off)
+    return [f"band(s) stay off the best fit of all bands by more than {limit:.0%} of their reflectance ({listed}): no maps "
+            f"match them, and the maps are biased; check the calibration of {wavelength_nm[off[0][0]]:g} nm first (the "
+            "Spectralon's certified value, the gray card, the filter) and its frames"]

@@ -31,7 +31,7 @@ from ..model.maps import SkinMaps
 from ..formats.resources import require_memory
 from ..model.renderer import SkinRenderer, render_bytes
 from .absorbers import AbsorberFit, candidate_rows, fit_grey_absorbance
-from .checks import DataChecks, check_cube, flag_value
+from .checks import DataChecks, band_bias, band_bias_notes, check_cube, flag_value
 from .fidelity import PATCH_MM, ForwardChoice, crosstalk_check, spatial_structure, uniform_light_factor, window_light_factor
 from .gauss_newton import curvature_and_columns, level_step
 from .grid_choice import band_noise, choose_map_grids
@@ -121,6 +121,7 @@ class MapFit:
     forward_choice: dict | None = None
     absorbers: dict | None = None
     uncertainty: dict | None = None
+    band_bias: dict[str, float] = field(default_factory=dict)
 
     @property
     def kept_levels(self) -> list[dict]:
@@ -511,6 +512,8 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     flags[high] |= flag_value("high_residual")
     if not bool(checks.bands_used.all()):
         flags |= flag_value("band_excluded")
+    bias = band_bias(residual, problem.level.target, used, problem.mask & ~checks.saturated.to(x.device))
+    checks.notes.extend(band_bias_notes(bias, problem.wavelength_nm.tolist()))
     sigma = torch.full((N_PARAMS, h * w), float("nan"), dtype=x.dtype, device=x.device)
     sigma[:, problem.pixels] = sigma_pix.T.to(x.dtype)
     noise_sigma = torch.full_like(sigma, float("nan"))
@@ -519,6 +522,7 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
         "maps": maps, "scale": float(scale), "image": image, "residual": residual, "residual_rms": residual_rms,
         "flags": flags.reshape(h, w), "sigma": sigma.reshape(N_PARAMS, h, w),
         "sigma_noise": noise_sigma.reshape(N_PARAMS, h, w), "maps_at_bound": nodes_at_bound,
+        "band_bias": {f"{problem.wavelength_nm[j]:g}": round(b, 5) for j, b in bias.items()},
         "uncertainty": {**widening, "noise_sigma_median": {n: float(sigma_noise[:, k].median()) for k, n in enumerate(PARAMETER_NAMES)}},
     }
 

@@ -92,6 +92,7 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
             "excluded_bands": fit.checks.excluded_bands,
             "saturated_pixels": int(fit.checks.saturated.sum()),
             "cube_masked_pixels": int(fit.checks.cube_masked.sum()),
+            "band_bias": fit.band_bias,
         },
         "flags": {"bits": FLAG_BITS, "counts": flags},
         "residual": residual_stats(fit.residual[:, visible], fit.residual_rms[visible], wl, used),

@@ -116,7 +116,7 @@ DIFFUSION_SEED_BASE = 61
 KNOBS = ("physics", "coupling", "gaussians", "series_tolerance", "blur", "border_mm", "dtype", "method", "start", "model",
          "coarsest_px", "ftol", "map_grids", "map_cells", "free_scale", "robust_passes", "max_iterations", "bin")
 COLUMNS = ("part", "config", "scene", "truth", "size_px", *KNOBS, "wall_s", "cpu_s", "peak_mb",
-           *(f"error_{m}" for m in MAPS), "score", "error_vs_mc", "mc_std_error", "error_vs_own", "residual_over_noise",
+           *(f"error_{m}" for m in MAPS), "score", "error_vs_mc", "mc_std_error", "error_vs_own", "residual_over_noise", "band_bias_max",
            "converged", "iterations", "pareto")
 KEY = ("part", "config", "scene")
 
@@ -313,6 +313,7 @@ class _Runner:
         _warm_up(settings, cube, self.device)
         seconds, cpu_s, peak, fit = _timed(lambda: fit_cube(cube, settings, device=self.device), self.device)
         row = {"wall_s": seconds, "cpu_s": cpu_s, "peak_mb": peak, "converged": all(lv["converged"] for lv in fit.kept_levels),
+               "band_bias_max": max((abs(b) for b in fit.band_bias.values()), default=math.nan),
                "iterations": sum(lv["iterations"] for lv in fit.kept_levels)}
         if session is None:
             row.update(self._against_faithful(case, fit))

@@ -95,3 +95,22 @@ def test_empty_mask_is_refused(small_cube):
     mask = torch.zeros_like(small_cube.cube.mask)
     with pytest.raises(ValueError, match="no usable pixel"):
         fit_cube(_damaged(small_cube.cube, small_cube.cube.reflectance, mask), FAST)
+
+
+def test_a_band_read_dark_is_reported_not_fitted_silently(small_cube, small_fit, small_fit_settings):
+    """A green band 8% too dark (a wrong Spectralon value at that band): no maps match it, and the fit
+    says so, naming that band first, in the notes and in fit.json; the clean cube raises nothing."""
+    from skinlayers.reconstruct.checks import BAND_BIAS_LIMIT
+
+    wl = small_cube.cube.wavelength_nm.tolist()
+    j = wl.index(550.0)
+    assert all(abs(b) < BAND_BIAS_LIMIT / 4 for b in small_fit.band_bias.values()), small_fit.band_bias
+    assert not any("stay off the best fit" in n for n in small_fit.checks.notes)
+    r = small_cube.cube.reflectance.clone()
+    r[j] *= 0.92
+    fit = fit_cube(Cube(r, small_cube.cube.mask, small_cube.cube.header), FitSettings(**small_fit_settings))
+    notes = [n for n in fit.checks.notes if "stay off the best fit" in n]
+    assert len(notes) == 1 and "550 nm" in notes[0] and "calibration of 550 nm first" in notes[0], fit.checks.notes
+    assert fit.band_bias["550"] > BAND_BIAS_LIMIT
+    summary = fit_summary(fit, FitSettings(**small_fit_settings))
+    assert summary["data_checks"]["band_bias"]["550"] > BAND_BIAS_LIMIT and notes[0] in summary["data_checks"]["notes"]
