@@ -61,13 +61,17 @@ def draw_charts(rows: list[dict], summary: dict, out: Path) -> list[Path]:
 
 
 def _panel(ax, group: dict, title: str, xlabel: str, ylabel: str, marks: dict) -> None:
+    from matplotlib.ticker import FormatStrFormatter, NullFormatter  # noqa: PLC0415
+
     configs = group["configs"]
     pts = [(name, e["wall_s"], e["error"], e["pareto"]) for name, e in configs.items() if e["error"] is not None]
     for name, t, err, on_front in pts:
-        colour, label = marks.get(name, ("0.35", None))
-        ax.scatter([t], [err], s=46 if label else 22, color=colour, zorder=3, edgecolor="k" if on_front else "none")
-        ax.annotate(label or name, (t, err), fontsize=7 if not label else 8, xytext=(4, 3), textcoords="offset points",
-                    color=colour if label else "0.25", weight="bold" if label else "normal")
+        if name in marks:  # the marked ones in the legend, drawn large
+            colour, label = marks[name]
+            ax.scatter([t], [err], s=90, color=colour, zorder=4, edgecolor="k" if on_front else "none", label=label)
+        else:
+            ax.scatter([t], [err], s=22, color="0.35", zorder=3, edgecolor="tab:green" if on_front else "none", linewidth=1.5)
+            ax.annotate(name, (t, err), fontsize=7, xytext=(4, -9), textcoords="offset points", color="0.25")
     front = sorted((t, err) for _, t, err, f in pts if f)
     if front:
         xs, ys = [], []
@@ -78,11 +82,14 @@ def _panel(ax, group: dict, title: str, xlabel: str, ylabel: str, marks: dict) -
             xs.append(t)
             ys.append(err)
         ax.plot(xs, ys, "-", color="tab:green", lw=1.2, label="Pareto front", zorder=2)
-        ax.legend(fontsize=8, loc="upper right")
     ax.set_xscale("log")
     errors = [err for _, _, err, _ in pts]
     if errors and min(errors) > 0 and max(errors) / min(errors) > 30:  # a wide spread of errors reads better in log
         ax.set_yscale("log")
+    ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.margins(x=0.12, y=0.08)
+    ax.legend(fontsize=8, loc="best")
     ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
     ax.title.set_fontsize(10)
     ax.grid(alpha=0.3, which="both")

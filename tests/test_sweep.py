@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import math
+import time
 
 import pytest
 import torch
@@ -78,7 +79,8 @@ def test_peak_memory_sees_a_block_that_allocates():
     with PeakMemory() as small:
         torch.zeros(10)
     with PeakMemory() as big:
-        x = torch.ones(64 * 2**20 // 4)  # 64 MB, touched
+        x = torch.ones(64 * 2**20 // 4)  # 64 MB, touched, held a while (the sampler reads every 5 ms)
         float(x.sum())
+        time.sleep(0.1)
         del x
     assert big.peak_mb > 40.0 and big.peak_mb > small.peak_mb + 30.0

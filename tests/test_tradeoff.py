@@ -1,0 +1,118 @@
+"""``skinlayers tradeoff`` on a tiny configuration: the table's documented columns, the fronts, the
+charts, a rerun that measures only what is missing; the shipped transport truths and the sessions
+photographed from them."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+from skinlayers.truths import FORWARD_SCENES, FORWARD_WAVELENGTHS_NM, SESSION_SEEDS, forward_scene, forward_truth, session_renders
+from skinlayers.tradeoff import COLUMNS, TradeoffPlan, SessionSpec, run_tradeoff
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "tradeoff.md"
+
+
+def _plan(inverse: list[str]) -> TradeoffPlan:
+    return TradeoffPlan(forward=["default", "series 0.1"], inverse=inverse, sessions=[SessionSpec("diffusion", 7, 16)],
+                        scale_sizes=[], scale_configs=[], scale_seed=7)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tradeoff")
+    said: list[str] = []
+    result = run_tradeoff(out, plan=_plan(["homogeneous", "binned 2x2"]), say=said.append)
+    return out, result, said
+
+
+def test_the_table_has_the_documented_columns_and_a_row_per_configuration_and_scene(tiny):
+    out, result, _ = tiny
+    with result.table.open() as f:
+        reader = csv.DictReader(f)
+        rows = list(reader)
+    assert reader.fieldnames == list(COLUMNS)
+    documented = set(re.findall(r"^\| `([a-z_A-Z]+)` \|", DOCS.read_text(), re.M))
+    assert set(COLUMNS) <= documented, sorted(set(COLUMNS) - documented)
+    forward = [r for r in rows if r["part"] == "forward"]
+    assert sorted((r["config"], r["scene"]) for r in forward) == sorted((c, s) for c in ("default", "series 0.1") for s in FORWARD_SCENES)
+    inverse = [r for r in rows if r["part"] == "inverse"]
+    assert [r["config"] for r in inverse] == ["homogeneous", "binned 2x2"]
+    for r in rows:
+        assert float(r["wall_s"]) > 0 and r["pareto"] in ("True", "False")
+    for r in forward:
+        assert 0 <= float(r["error_vs_mc"]) < 0.5 and 0 <= float(r["error_vs_own"]) < 0.5
+    for r in inverse:
+        assert float(r["score"]) > 0 and float(r["residual_over_noise"]) > 0.5 and r["converged"] in ("True", "False")
+    assert inverse[1]["bin"] == "2" and inverse[0]["model"] == "homogeneous"
+
+
+def test_the_summary_and_the_charts(tiny):
+    out, result, _ = tiny
+    summary = json.loads(result.summary_path.read_text())
+    groups = summary["groups"]
+    assert {"forward vs Monte Carlo", "forward vs own", "inverse vs diffusion"} <= set(groups)
+    fwd = groups["forward vs Monte Carlo"]
+    assert set(fwd["configs"]) == {"default", "series 0.1"} and "default_on_front" in fwd
+    assert any(c["pareto"] for c in fwd["configs"].values())
+    assert {p.name for p in result.charts} == {"tradeoff_forward.png", "tradeoff_inverse.png"}
+    assert all(p.stat().st_size > 10_000 for p in result.charts)
+
+
+def test_a_rerun_measures_only_the_missing_rows(tiny):
+    out, _, said = tiny
+    assert sum(s.startswith("[1/") for s in said) == 2  # the forward sweep, the inverse sweep
+    again: list[str] = []
+    run_tradeoff(out, plan=_plan(["homogeneous", "binned 2x2", "ftol 1e-2"]), say=again.append)
+    started = [s for s in again if s.startswith("[")]
+    assert len(started) == 1 and "ftol 1e-2" in started[0]
+
+
+def test_the_shipped_forward_truths_cover_every_scene():
+    for name in FORWARD_SCENES:
+        mean, se = forward_truth(name)
+        scene = forward_scene(name)
+        assert mean.shape == (len(FORWARD_WAVELENGTHS_NM), scene.x_mm.numel()) == se.shape
+        assert bool((mean > 0).all()) and bool((se > 0).all())
+        assert float((se / mean)[:, scene.keep].median()) < 0.05  # the photons the file claims
+
+
+def test_a_session_photographed_from_the_shipped_monte_carlo(tmp_path):
+    """The bench adopts the shipped renders: its truth is the Monte Carlo's, box-averaged to the cube;
+    renders of another grid are refused."""
+    from skinlayers.acquire.scene import scene_from_dict
+    from skinlayers.acquire.simulated import SimulatedBench
+    from skinlayers.acquire.simulation_settings import load_simulation_settings
+    from skinlayers.acquire.simulation_settings import SimulationError
+    from skinlayers.demo import session_rig
+
+    record, renders = session_renders(SESSION_SEEDS[0])
+    settings = load_simulation_settings(None, truth={"physics": "transport", "photons": record["photons_per_node"]})
+    bench = SimulatedBench(session_rig(record["cube_px"]), scene_from_dict(record["scene"]), settings, record["seed"], device="cpu")
+    bench.adopt_renders(renders)
+    truth = bench.truth_reflectance()
+    m, n = bench._margin_px, bench._window_px
+    expected = torch.nn.functional.avg_pool2d(renders["truth"][:, None, m:m + n, m:m + n].double(), 2)[:, 0]
+    assert torch.allclose(truth, expected)
+    assert bench.truth_std_error() is not None
+    with pytest.raises(SimulationError, match="do not fit"):
+        bench.adopt_renders({k: v[:, ..., :-2, :-2] for k, v in renders.items()})
+
+
+def test_a_users_cube_is_measured_against_its_most_faithful_fit(tiny, tmp_path):
+    """--cube: no truth; the faithful configuration first, each other's maps against its maps."""
+    out, _, _ = tiny
+    cube = out / "sessions" / "diffusion-s7-16px" / "calibrated" / "cube.exr"
+    plan = TradeoffPlan(forward=[], inverse=["faithful", "homogeneous"], sessions=[], scale_sizes=[], scale_configs=[],
+                        scale_seed=0, cube=cube)
+    result = run_tradeoff(tmp_path, plan=plan, say=lambda _: None)
+    with result.table.open() as f:
+        rows = {r["config"]: r for r in csv.DictReader(f)}
+    assert rows["faithful"]["truth"] == "none" and float(rows["faithful"]["score"]) == 0.0
+    assert float(rows["homogeneous"]["score"]) > 0.0 and rows["homogeneous"]["residual_over_noise"] == ""
+    assert "inverse vs none" in result.summary["groups"]
