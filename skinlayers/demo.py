@@ -20,7 +20,7 @@ from .formats.errors import InputError
 from .formats.outputs import refuse_inside_session
 from .formats.version import software_version
 
-__all__ = ["accuracy_against_truth", "demo", "map_errors", "register", "session_rig", "simulate_session"]
+__all__ = ["accuracy_against_truth", "demo", "map_errors", "register", "scored_pixels", "session_rig", "simulate_session"]
 
 #: Folder the demo writes to when none is given; taken with a suffix (-2, -3, …) when it exists.
 DEFAULT_FOLDER = "skinlayers-demo"
@@ -75,7 +75,7 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
     fit = read_maps(reconstruction / "maps.exr")
     channels, _ = read_exr(reconstruction / "maps.exr")
     flags = torch.as_tensor(np.asarray(channels["flags"])).to(torch.int64)
-    keep = (((flags >> FLAG_BITS["masked"]) & 1) == 0) & (((flags >> FLAG_BITS["high_residual"]) & 1) == 0)
+    keep = scored_pixels(flags)
     summary = json.loads((reconstruction / "fit.json").read_text())
     out: dict = {"pixels": int(keep.sum()), "high_residual_pixels": int(((flags >> FLAG_BITS["high_residual"]) & 1).sum()),
                  "parameters": map_errors(truth, fit, keep)}
@@ -92,6 +92,15 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
         noise = np.stack([np.asarray(cube_channels[f"R_{b}"]) - np.asarray(truth_r[f"R_{b}"]) for b in used])
         out["cube_noise_rms"] = float(np.sqrt(np.mean(noise[:, keep.numpy()] ** 2)))
     return out
+
+
+def scored_pixels(flags):
+    """The pixels a fit is scored on ``(H, W)`` bool, from its ``flags`` ``(H, W)``: visible, and not flagged
+    for a high residual (hairs and veins, which the fit leaves to the residual)."""
+    from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
+
+    flags = flags.to("cpu").long()
+    return (((flags >> FLAG_BITS["masked"]) & 1) == 0) & (((flags >> FLAG_BITS["high_residual"]) & 1) == 0)
 
 
 def map_errors(truth, fit, keep) -> dict:

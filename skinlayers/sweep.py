@@ -9,6 +9,7 @@ soon as it is measured, so an interrupted analysis continues where it stopped.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 import resource
@@ -19,6 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
+from .formats.errors import InputError
+from .formats.files import atomic_write
+
 __all__ = ["PeakMemory", "SweepTable", "pareto_front", "time_to_front"]
 
 #: How often the peak-memory sampler reads the resident set (s).
@@ -28,8 +32,8 @@ SAMPLE_S = 0.005
 class SweepTable:
     """The CSV at ``path`` with ``columns`` (in order), a case named by the values of ``key`` columns.
 
-    A file whose header is not ``columns`` is refused (a table of another analysis or version): the
-    caller names a fresh folder or removes the file."""
+    A file whose header is not ``columns`` is refused (``InputError``: a table of another analysis or
+    version): the user names a fresh folder or removes the file."""
 
     def __init__(self, path: str | Path, columns: Sequence[str], key: Sequence[str]) -> None:
         self.path, self.columns, self.key = Path(path), list(columns), list(key)
@@ -41,7 +45,7 @@ class SweepTable:
             with self.path.open(newline="") as f:
                 reader = csv.DictReader(f)
                 if reader.fieldnames != self.columns:
-                    raise ValueError(f"{self.path}: its columns are not this analysis's ({reader.fieldnames} against "
+                    raise InputError(f"{self.path}: its columns are not this analysis's ({reader.fieldnames} against "
                                      f"{self.columns}); write into a new folder or remove the file")
                 self.rows = list(reader)
 
@@ -67,6 +71,14 @@ class SweepTable:
             f.flush()
             os.fsync(f.fileno())
         self.rows.append(text)
+
+    def rewrite(self) -> None:
+        """Write every kept row again (after the caller changed them), atomically: never half a table."""
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, fieldnames=self.columns)
+        writer.writeheader()
+        writer.writerows({c: _cell(r.get(c)) for c in self.columns} for r in self.rows)
+        atomic_write(self.path, buffer.getvalue().encode())
 
     def run(self, cases: Iterable[dict], measure: Callable[[dict], dict], *, say: Callable[[str], None] | None = None,
             estimate_s: Callable[[dict], float] | None = None) -> "SweepProgress":

@@ -134,6 +134,11 @@ class SessionSpec:
         return f"{self.physics}-s{self.seed}-{self.size_px}px"
 
 
+def _all_configs() -> dict[str, dict]:
+    """Every fit configuration a plan can name: the faithful one, the inverse sweep's, the scale sweep's."""
+    return {FAITHFUL: FAITHFUL_CONFIG, **INVERSE_CONFIGS, **SCALE_CONFIGS}
+
+
 @dataclass
 class TradeoffPlan:
     """What one run measures."""
@@ -147,7 +152,7 @@ class TradeoffPlan:
     cube: Path | None = None
     quick: bool = False
     #: The inverse configurations by name (``INVERSE_CONFIGS`` with the run's own changes).
-    configs: dict[str, dict] = field(default_factory=lambda: {FAITHFUL: FAITHFUL_CONFIG, **INVERSE_CONFIGS, **SCALE_CONFIGS})
+    configs: dict[str, dict] = field(default_factory=lambda: _all_configs())
     #: Configurations measured only on sessions of these truths.
     only_on: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
@@ -169,7 +174,7 @@ def make_plan(quick: bool = False, seed: int = 0, cube: Path | None = None) -> T
     from .truths import SESSION_PX, SESSION_SEEDS  # noqa: PLC0415
 
     n = 1 if quick else 3
-    configs = {FAITHFUL: FAITHFUL_CONFIG, **INVERSE_CONFIGS, **SCALE_CONFIGS}
+    configs = _all_configs()
     if quick:
         configs["paper"] = {**configs["paper"], "max_iterations": QUICK_PAPER_STEPS // FIRST_ORDER_CAP}
     sessions = [SessionSpec("diffusion", DIFFUSION_SEED_BASE + seed + i, SESSION_PX) for i in range(n)]
@@ -347,12 +352,13 @@ class _Runner:
         if case["config"] == FAITHFUL:
             self._faithful = fit.maps
         ref = self._faithful
-        keep = (fit.flags & 1) == 0
         if ref is None or ref.shape != fit.maps.shape:
             return {}
         from .demo import map_errors  # noqa: PLC0415
+        from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
 
-        errors = map_errors(ref, fit.maps, keep.cpu())
+        visible = ((fit.flags.cpu() >> FLAG_BITS["masked"]) & 1) == 0
+        errors = map_errors(ref, fit.maps, visible)
         return _error_columns(errors)
 
 
@@ -389,23 +395,16 @@ def _spec_of(case: dict) -> SessionSpec:
 
 
 def _render(scene, over: dict, device: str) -> torch.Tensor:
-    """``scene``'s exitance ``(L, H, W)`` by the renderer with ``over`` (a y-invariant row repeated over 16
-    rows, as the renderer needs room for its blurs)."""
+    """``scene``'s exitance ``(L, H, W)`` by the renderer with ``over`` (``ForwardScene.render_maps``)."""
     from .model import ModelSettings  # noqa: PLC0415
-    from .model.maps import SkinMaps  # noqa: PLC0415
     from .model.renderer import SkinRenderer  # noqa: PLC0415
     from .truths import FORWARD_WAVELENGTHS_NM  # noqa: PLC0415
 
     dtype = torch.float64 if over.get("dtype") == "float64" else torch.float32
     settings = ModelSettings.model_validate({k: v for k, v in over.items() if k != "dtype"})
-    maps = scene.maps
-    if scene.profile:
-        maps = SkinMaps(*(v.expand(1, 16, v.shape[-1]).contiguous() for v in maps.params().values()), mm_per_pixel=maps.mm_per_pixel,
-                        absorbance=None if maps.absorbance is None else maps.absorbance.expand(1, -1, 16, -1).contiguous(),
-                        absorbance_wavelength_nm=maps.absorbance_wavelength_nm)
     wl = torch.tensor(FORWARD_WAVELENGTHS_NM, dtype=dtype, device=device)
     with torch.no_grad():
-        return SkinRenderer(settings).render(maps.to(device=device, dtype=dtype), scene.light, wl).exitance[0].double().cpu()
+        return SkinRenderer(settings).render(scene.render_maps().to(device=device, dtype=dtype), scene.light, wl).exitance[0].double().cpu()
 
 
 #: Work shorter than this (s) is timed REPEATS times and the fastest kept: a short step's time is
@@ -440,18 +439,18 @@ WARM_UP_PX = 16
 
 def _warm_up(settings, cube, device: str) -> None:
     """Before the clock starts: the fit's tables built or loaded (a one-off cost, kept on disk) and one
-    short fit of a corner of the cube with the same settings (the point tables, the first calls of
+    short fit of the cube's centre with the same settings (the point tables, the first calls of
     each kernel: costs a process pays once, not a fit)."""
     from .formats.cube import Cube  # noqa: PLC0415
     from .reconstruct import fit_cube  # noqa: PLC0415
 
     n = min(WARM_UP_PX, cube.shape[1], cube.shape[2])
     c = cube.shape[1] // 2 - n // 2
-    corner = Cube(cube.reflectance[:, c:c + n, c:c + n].clone(), torch.ones(n, n, dtype=torch.bool), cube.header)
-    quick = {"max_iterations": 1, "coarsest_px": 0}
+    centre = Cube(cube.reflectance[:, c:c + n, c:c + n].clone(), torch.ones(n, n, dtype=torch.bool), cube.header)
+    short = {"max_iterations": 1, "coarsest_px": 0}
     if settings.method in ("paper-fd", "adam"):  # their first-order loops have no first-call costs of their own
-        quick.update(method="gn-hom", free_scale=False)
-    fit_cube(corner, settings.model_copy(update=quick), device=device)
+        short.update(method="gn-hom", free_scale=False)
+    fit_cube(centre, settings.model_copy(update=short), device=device)
 
 
 def _binned(cube, k: int):
@@ -474,13 +473,11 @@ def _against_truth(fit, cube, session: Path, k: int) -> dict:
     residual), and the residual's RMS over the cube's noise against its true reflectance."""
     import torch.nn.functional as F  # noqa: PLC0415
 
-    from .demo import map_errors  # noqa: PLC0415
+    from .demo import map_errors, scored_pixels  # noqa: PLC0415
     from .formats.exr import read_spectral  # noqa: PLC0415
     from .model.maps_io import read_maps  # noqa: PLC0415
-    from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
 
-    flags = fit.flags.cpu()
-    keep = (((flags >> FLAG_BITS["masked"]) & 1) == 0) & (((flags >> FLAG_BITS["high_residual"]) & 1) == 0)
+    keep = scored_pixels(fit.flags.cpu())
     errors = map_errors(read_maps(session / "truth" / "maps.exr"), fit.maps, keep)
     truth_r = read_spectral(session / "truth" / "reflectance.exr")[0].double()
     if k > 1:
@@ -564,21 +561,12 @@ def _slope(x: list[float], y: list[float]) -> float:
 
 def _rewrite_with_front(table: SweepTable, summary: dict) -> None:
     """Each row's ``pareto``: its configuration on its group's front (forward: against the Monte Carlo)."""
-    from .formats.files import atomic_write  # noqa: PLC0415
-
     groups = summary["groups"]
     for row in table.rows:
         name = "forward vs Monte Carlo" if row["part"] == "forward" else f"inverse vs {row['truth']}"
         entry = groups.get(name, {}).get("configs", {}).get(row["config"])
         row["pareto"] = "" if entry is None else str(entry["pareto"])
-    import csv  # noqa: PLC0415
-    import io  # noqa: PLC0415
-
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=table.columns)
-    writer.writeheader()
-    writer.writerows(table.rows)
-    atomic_write(table.path, buffer.getvalue().encode())
+    table.rewrite()
 
 
 # -- the command ----------------------------------------------------------------------------------------------

@@ -37,6 +37,8 @@ FORWARD_WAVELENGTHS_NM = (470.0, 560.0, 650.0)
 SCENE_MM = 0.1
 ROW_PX = 80
 WINDOW_SCENE_PX = 90
+#: Rows a y-invariant scene is rendered on.
+RENDER_ROWS = 16
 #: Rows about the window scene's centre line averaged into its profile.
 WINDOW_ROWS = 20
 #: Lit skin beyond the profiles' maps (the dermis's diffusion length at 650 nm is about 2 mm).
@@ -69,6 +71,18 @@ class ForwardScene:
     profile: bool
     keep: torch.Tensor
     x_mm: torch.Tensor
+
+    def render_maps(self):
+        """The maps the renderer draws: a y-invariant row repeated over ``RENDER_ROWS`` rows (the renderer
+        needs rows for its blurs; ``scene_profile`` takes the middle one), the window scene as it is."""
+        from .model.maps import SkinMaps  # noqa: PLC0415
+
+        m = self.maps
+        if not self.profile:
+            return m
+        return SkinMaps(*(v.expand(1, RENDER_ROWS, v.shape[-1]).contiguous() for v in m.params().values()),
+                        mm_per_pixel=m.mm_per_pixel, absorbance_wavelength_nm=m.absorbance_wavelength_nm,
+                        absorbance=None if m.absorbance is None else m.absorbance.expand(1, -1, RENDER_ROWS, -1).contiguous())
 
 
 def _x(width_px: int) -> torch.Tensor:

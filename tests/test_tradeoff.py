@@ -116,3 +116,13 @@ def test_a_users_cube_is_measured_against_its_most_faithful_fit(tiny, tmp_path):
     assert rows["faithful"]["truth"] == "none" and float(rows["faithful"]["score"]) == 0.0
     assert float(rows["homogeneous"]["score"]) > 0.0 and rows["homogeneous"]["residual_over_noise"] == ""
     assert "inverse vs none" in result.summary["groups"]
+
+
+def test_bad_input_ends_in_one_line(run_cli, tmp_path):
+    """A folder holding another table, a bad device, a missing cube: one line on stderr, status 1."""
+    (tmp_path / "tradeoff.csv").write_text("a,b\n1,2\n")
+    for args, words in ((["-o", str(tmp_path)], "columns"), (["--device", "tpu", "-o", str(tmp_path / "n")], "--device"),
+                        (["--cube", str(tmp_path / "none.exr"), "-o", str(tmp_path / "m")], "no such file")):
+        code, out, err = run_cli("tradeoff", *args)
+        assert code == 1 and err.startswith("error:") and words in err and "Traceback" not in err, (args, err)
+        assert len(err.strip().splitlines()) == 1
