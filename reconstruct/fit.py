@@ -31,7 +31,7 @@ from ..model.maps import SkinMaps
 from ..formats.resources import require_memory
 from ..model.renderer import SkinRenderer, render_bytes
 from .absorbers import AbsorberFit, candidate_rows, fit_grey_absorbance
-from .checks import DataChecks, band_bias, band_bias_notes, check_cube, flag_value
+from .checks import DataChecks, band_bias, band_bias_notes, check_cube, flag_value, precision_notes, residual_notes
 from .fidelity import PATCH_MM, ForwardChoice, crosstalk_check, spatial_structure, uniform_light_factor, window_light_factor
 from .gauss_newton import curvature_and_columns, level_step
 from .grid_choice import band_noise, choose_map_grids
@@ -122,6 +122,8 @@ class MapFit:
     absorbers: dict | None = None
     uncertainty: dict | None = None
     band_bias: dict[str, float] = field(default_factory=dict)
+    residual_over_noise: float = math.nan
+    sigma_median: dict[str, float] = field(default_factory=dict)
 
     @property
     def kept_levels(self) -> list[dict]:
@@ -513,7 +515,11 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     if not bool(checks.bands_used.all()):
         flags |= flag_value("band_excluded")
     bias = band_bias(residual, problem.level.target, used, problem.mask & ~checks.saturated.to(x.device))
-    checks.notes.extend(band_bias_notes(bias, problem.wavelength_nm.tolist()))
+    checks.warn(band_bias_notes(bias, problem.wavelength_nm.tolist()))
+    ratio = _residual_over_noise(residual, problem.level.target, used, problem.mask & ~checks.saturated.to(x.device))
+    checks.warn(residual_notes(ratio))
+    precision = _sigma_median(p, sigma_pix, problem)
+    checks.warn(precision_notes(precision))
     sigma = torch.full((N_PARAMS, h * w), float("nan"), dtype=x.dtype, device=x.device)
     sigma[:, problem.pixels] = sigma_pix.T.to(x.dtype)
     noise_sigma = torch.full_like(sigma, float("nan"))
@@ -523,8 +529,28 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
         "flags": flags.reshape(h, w), "sigma": sigma.reshape(N_PARAMS, h, w),
         "sigma_noise": noise_sigma.reshape(N_PARAMS, h, w), "maps_at_bound": nodes_at_bound,
         "band_bias": {f"{problem.wavelength_nm[j]:g}": round(b, 5) for j, b in bias.items()},
+        "residual_over_noise": round(ratio, 4), "sigma_median": {n: round(v, 5) for n, v in precision.items()},
         "uncertainty": {**widening, "noise_sigma_median": {n: float(sigma_noise[:, k].median()) for k, n in enumerate(PARAMETER_NAMES)}},
     }
+
+
+def _residual_over_noise(residual: torch.Tensor, target: torch.Tensor, used: torch.Tensor, pixels: torch.Tensor) -> float:
+    """The residual's RMS over the cube's own noise (``band_noise``), both over ``pixels`` ``(H, W)`` and the
+    ``used`` bands; NaN where too few pixels have their neighbourhood to estimate the noise."""
+    try:
+        noise = band_noise(target, pixels)[used]
+    except ValueError:
+        return math.nan
+    res = residual[used][:, pixels].double()
+    return float(res.pow(2).mean().sqrt() / noise.double().pow(2).mean().sqrt())
+
+
+def _sigma_median(p: torch.Tensor, sigma_pix: torch.Tensor, problem: LevelProblem) -> dict[str, float]:
+    """Each map's median σ over the fitted pixels: relative to the map's value, β_m absolute."""
+    values = problem.at_pixels(p).double()  # (N, N_PARAMS)
+    sigma = sigma_pix.double()
+    return {n: float((sigma[:, k] if n == "beta_m" else sigma[:, k] / values[:, k].abs().clamp_min(1e-12)).median())
+            for k, n in enumerate(PARAMETER_NAMES)}
 
 
 def _widened(problem: LevelProblem, ev, jac, residual, x, sigma_pix, renderer_fit: bool) -> tuple[torch.Tensor, dict]:

@@ -14,6 +14,7 @@ the fit, the four files written into its staging area and moved into place, ``fi
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Callable
 
@@ -89,10 +90,13 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
         "time": {"cpu_s": round(fit.cpu_s, 3), "wall_s": round(fit.wall_s, 3), "renders": fit.counter.as_dict()},
         "data_checks": {
             "notes": fit.checks.notes,
+            "warnings": fit.checks.warnings,
             "excluded_bands": fit.checks.excluded_bands,
             "saturated_pixels": int(fit.checks.saturated.sum()),
             "cube_masked_pixels": int(fit.checks.cube_masked.sum()),
             "band_bias": fit.band_bias,
+            "residual_over_noise": fit.residual_over_noise if math.isfinite(fit.residual_over_noise) else None,
+            "sigma_median": fit.sigma_median,
         },
         "flags": {"bits": FLAG_BITS, "counts": flags},
         "residual": residual_stats(fit.residual[:, visible], fit.residual_rms[visible], wl, used),

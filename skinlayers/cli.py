@@ -14,6 +14,7 @@ import sys
 import typer
 
 from . import demo as demo_cli
+from . import stability as stability_analysis
 from . import tradeoff as tradeoff_analysis
 from .acquire import cli as acquire_cli
 from .calibration import cli as calibration_cli
@@ -37,6 +38,7 @@ calibration_cli.register(app)
 reconstruct_cli.register(app)
 demo_cli.register(app)
 tradeoff_analysis.register(app)
+stability_analysis.register(app)
 
 
 def main() -> None:

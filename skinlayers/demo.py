@@ -241,15 +241,16 @@ def demo(
 
 
 def simulate_session(session: Path, rig, scene: Path, seed: int, device: str = "auto", truth: dict | None = None,
-                     kept_renders: dict | None = None) -> None:
+                     kept_renders: dict | None = None, simulation: Path | None = None) -> None:
     """A simulated session on the instant simulated wheel, its truth beside the frames (``truth``: the
     simulation's ``truth`` overrides, e.g. ``{"physics": "transport", "photons": 300_000}``; ``kept_renders``:
-    the skin as rendered earlier with those settings, ``SimulatedBench.band_renders``, photographed anew)."""
+    the skin as rendered earlier with those settings, ``SimulatedBench.band_renders``, photographed anew;
+    ``simulation``: a simulation settings file, None for the embedded one)."""
     from .acquire.cli import capture_progress  # noqa: PLC0415
     from .acquire.connect import open_devices  # noqa: PLC0415
     from .acquire.session import AutoOperator, run_session  # noqa: PLC0415
 
-    with open_devices(rig, simulated=True, scene=scene, seed=seed, wheel_time_scale=0.0,
+    with open_devices(rig, simulated=True, scene=scene, simulation=simulation, seed=seed, wheel_time_scale=0.0,
                       device=None if device == "auto" else device, truth=truth or {}) as devices, capture_progress() as progress:
         if kept_renders is not None:
             devices.bench.adopt_renders(kept_renders)

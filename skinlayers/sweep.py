@@ -23,7 +23,7 @@ from typing import Callable, Iterable, Sequence
 from .formats.errors import InputError
 from .formats.files import atomic_write
 
-__all__ = ["PeakMemory", "SweepTable", "pareto_front", "time_to_front"]
+__all__ = ["PeakMemory", "SweepTable", "cell_text", "pareto_front", "time_to_front"]
 
 #: How often the peak-memory sampler reads the resident set (s).
 SAMPLE_S = 0.005
@@ -50,7 +50,7 @@ class SweepTable:
                 self.rows = list(reader)
 
     def key_of(self, row: dict) -> tuple[str, ...]:
-        return tuple(_cell(row.get(k)) for k in self.key)
+        return tuple(cell_text(row.get(k)) for k in self.key)
 
     def done(self) -> set[tuple[str, ...]]:
         return {self.key_of(r) for r in self.rows}
@@ -62,7 +62,7 @@ class SweepTable:
             raise ValueError(f"row has columns the table does not: {sorted(unknown)}")
         new = not self.path.exists() or not self.path.stat().st_size
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        text = {c: _cell(row.get(c)) for c in self.columns}
+        text = {c: cell_text(row.get(c)) for c in self.columns}
         with self.path.open("a", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=self.columns)
             if new:
@@ -77,7 +77,7 @@ class SweepTable:
         buffer = io.StringIO()
         writer = csv.DictWriter(buffer, fieldnames=self.columns)
         writer.writeheader()
-        writer.writerows({c: _cell(r.get(c)) for c in self.columns} for r in self.rows)
+        writer.writerows({c: cell_text(r.get(c)) for c in self.columns} for r in self.rows)
         atomic_write(self.path, buffer.getvalue().encode())
 
     def run(self, cases: Iterable[dict], measure: Callable[[dict], dict], *, say: Callable[[str], None] | None = None,
@@ -136,7 +136,7 @@ def _stderr(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
-def _cell(value) -> str:
+def cell_text(value) -> str:
     """A value as the CSV holds it (and as it reads back): floats to 6 significant digits."""
     if value is None:
         return ""

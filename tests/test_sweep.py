@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import math
+import mmap
 import time
 
 import pytest
@@ -79,8 +80,10 @@ def test_peak_memory_sees_a_block_that_allocates():
     with PeakMemory() as small:
         torch.zeros(10)
     with PeakMemory() as big:
-        x = torch.ones(64 * 2**20 // 4)  # 64 MB, touched, held a while (the sampler reads every 5 ms)
-        float(x.sum())
+        # 64 MB of fresh pages, each touched, held a while (the sampler reads every 5 ms). An anonymous map,
+        # not torch.ones: a tensor may reuse pages the allocator still holds from earlier tests.
+        block = mmap.mmap(-1, 64 * 2**20)
+        block.write(b"\1" * len(block))
         time.sleep(0.1)
-        del x
+        block.close()
     assert big.peak_mb > 40.0 and big.peak_mb > small.peak_mb + 30.0

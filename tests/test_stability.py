@@ -1,0 +1,148 @@
+"""``skinlayers stability``: the conditions do what they say to a cube, a cell's verdict and the summary
+on constructed rows, and a small matrix on a simulated 16² session where every failing cell is told, and
+one goes silent when the fit's checks are switched off."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from skinlayers.formats.cube import Cube, CubeHeader
+from skinlayers.stability import (COLUMNS, CONDITIONS, METHODS, RESIDUAL_AT_NOISE, SIGMA_COVER, StabilityPlan, _perturb_cube,
+                                  cell_verdict, make_plan, run_stability, summarise)
+from skinlayers.reconstruct.checks import MAP_TARGETS, RESIDUAL_NOISE_LIMIT, precision_notes, residual_notes
+
+WAVELENGTHS_NM = (430.0, 460.0, 490.0, 520.0, 550.0, 580.0, 610.0, 640.0, 670.0)
+
+
+def _cube(reflectance: torch.Tensor) -> Cube:
+    header = CubeHeader(wavelengths_nm=list(WAVELENGTHS_NM), mm_per_pixel=0.1)
+    return Cube(reflectance, torch.ones(reflectance.shape[1:], dtype=torch.bool), header)
+
+
+def test_cube_conditions_change_what_they_name_and_nothing_else():
+    gen = torch.Generator().manual_seed(0)
+    truth = 0.2 + 0.1 * torch.rand(9, 12, 12, generator=gen)
+    noisy = truth + 0.01 * torch.randn(9, 12, 12, generator=gen)
+    cube = _cube(noisy)
+    scaled = _perturb_cube(cube, truth, "noise", 4.0).reflectance
+    torch.testing.assert_close(scaled - truth, 4.0 * (noisy - truth))
+    dark = _perturb_cube(cube, truth, "band 430 nm off", -0.08).reflectance
+    torch.testing.assert_close(dark[0], 0.92 * noisy[0])
+    torch.testing.assert_close(dark[1:], noisy[1:])
+    dead = _perturb_cube(cube, truth, "dead band", 550).reflectance
+    assert float(dead[4].max()) < 1e-3 and torch.equal(dead[5:], noisy[5:])
+    step = torch.zeros(9, 12, 12)
+    step[:, :, 6:] = 1.0
+    moved = _perturb_cube(_cube(step), step, "misregistration", 2.0).reflectance
+    # neighbouring bands one pixel each way: the step's position differs by 2 px between them
+    assert float(moved[0, 0, 4]) == pytest.approx(0.0, abs=1e-6) and float(moved[0, 0, 5]) == pytest.approx(1.0, abs=1e-6)
+    assert float(moved[1, 0, 6]) == pytest.approx(0.0, abs=1e-6) and float(moved[1, 0, 7]) == pytest.approx(1.0, abs=1e-6)
+    blurred = _perturb_cube(_cube(step), step, "motion blur", 5).reflectance
+    assert 0.0 < float(blurred[4, 0, 5]) < 1.0 and torch.equal(blurred[3], step[3])
+    with pytest.raises(ValueError, match="not a cube condition"):
+        _perturb_cube(cube, truth, "hairs", 5)
+
+
+def _row(**over) -> dict:
+    row = {f"error_{m}": 0.5 * t for m, t in MAP_TARGETS.items()}
+    row.update(residual_over_noise=1.0, sigma_cover=0.9)
+    row.update(over)
+    return row
+
+
+def test_a_cells_verdict_names_each_missed_target():
+    assert cell_verdict(_row()) == []
+    assert cell_verdict(_row(error_C_hd=0.11)) == ["C_hd"]
+    assert cell_verdict(_row(error_beta_m=0.2, residual_over_noise=RESIDUAL_AT_NOISE * 1.01)) == ["beta_m", "residual"]
+    assert cell_verdict(_row(sigma_cover=SIGMA_COVER - 0.01)) == ["sigma"]
+    assert cell_verdict(_row(error_C_m=math.nan)) == ["C_m"]  # a NaN error is no success
+
+
+def test_the_summary_finds_breaking_points_silent_cells_and_false_alarms():
+    plan = StabilityPlan({"noise": (0.25, 2.0, 4.0, 8.0), "band 430 nm off": (-0.10, -0.05, 0.05)}, ["auto"])
+    rows = [{"condition": "clean", "strength": "", "method": "auto", "meets_targets": "True", "detected": "False", "missed": "", "message": ""}]
+    cells = {("noise", "0.25"): (True, False), ("noise", "2"): (True, True), ("noise", "4"): (False, True), ("noise", "8"): (False, False),
+             ("band 430 nm off", "-0.1"): (False, False), ("band 430 nm off", "-0.05"): (False, True), ("band 430 nm off", "0.05"): (True, False)}
+    for (c, s), (met, told) in cells.items():
+        rows.append({"condition": c, "strength": s, "method": "auto", "meets_targets": str(met), "detected": str(told),
+                     "missed": "" if met else "C_m", "message": "a warning" if told else ""})
+    summary = summarise(rows, plan)["methods"]["auto"]
+    assert summary["breaking_points"]["noise"]["first_miss"] == 4.0
+    assert summary["breaking_points"]["band 430 nm off"]["first_miss"] == -0.05  # nearest the clean data
+    assert [(s["condition"], s["strength"]) for s in summary["silent"]] == [("noise", "8"), ("band 430 nm off", "-0.1")]
+    assert [(s["condition"], s["strength"]) for s in summary["false_alarms"]] == [("noise", "2")]
+    assert summary["meeting_targets"] == 4 and summary["cells"] == 8
+
+
+def test_the_fits_residual_and_precision_warnings_fire_beyond_their_limits_only():
+    assert residual_notes(RESIDUAL_NOISE_LIMIT * 0.99) == [] and residual_notes(math.nan) == []
+    assert "2.0× the cube's noise" in residual_notes(2.0)[0]
+    assert precision_notes({n: 0.9 * t for n, t in MAP_TARGETS.items()} | {"C_bc": 5.0}) == []  # C_bc has no target
+    line = precision_notes({"C_m": 0.3, "beta_m": 0.05, "C_hd": 0.2})[0]
+    assert "C_m ±30%" in line and "C_hd ±20%" in line and "beta_m" not in line
+
+
+def test_the_plans_name_known_conditions_and_methods():
+    for quick in (True, False):
+        plan = make_plan(quick)
+        assert set(plan.conditions) == set(CONDITIONS) and set(plan.methods) <= set(METHODS)
+        for name, strengths in plan.conditions.items():
+            assert set(strengths) <= set(CONDITIONS[name].strengths), name
+
+
+SMALL = {"noise": (8.0,), "misregistration": (2.0,), "dead band": (550,)}
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    out = tmp_path_factory.mktemp("stability")
+    said: list[str] = []
+    result = run_stability(out, plan=StabilityPlan(dict(SMALL), ["gn-hom"], 16, seed=5), say=said.append)
+    return out, result, said
+
+
+def test_every_failing_cell_of_a_small_matrix_is_told(small):
+    out, result, said = small
+    with result.table.open() as f:
+        reader = csv.DictReader(f)
+        rows = list(reader)
+    assert reader.fieldnames == list(COLUMNS)
+    faults = [r for r in rows if r["condition"] != "clean"]
+    assert [(r["condition"], r["method"]) for r in faults] == [(c, "gn-hom") for c in SMALL]
+    for r in faults:
+        assert r["meets_targets"] == "False", r  # each fault is strong enough to break the fit
+        assert r["detected"] == "True" and r["message"], r
+    assert "residual" in next(r for r in faults if r["condition"] == "misregistration")["message"]
+    assert "550 nm left out" in next(r for r in faults if r["condition"] == "dead band")["message"]
+    summary = json.loads(result.summary_path.read_text())
+    assert [s for s in summary["methods"]["gn-hom"]["silent"] if s["condition"] != "clean"] == []
+    assert [p.name for p in result.charts] == ["stability_gn-hom.png"] and result.charts[0].stat().st_size > 0
+    assert any("about" in line for line in said)  # progress with the time left
+
+
+def test_with_the_fits_checks_switched_off_a_failure_goes_silent(small, tmp_path, monkeypatch):
+    out, _, _ = small
+    shutil.copytree(out / "sessions", tmp_path / "sessions")  # the same session, not simulated again
+    from skinlayers.reconstruct import checks
+
+    monkeypatch.setattr(checks.DataChecks, "warn", lambda self, lines: None)
+    result = run_stability(tmp_path, plan=StabilityPlan({"misregistration": (2.0,)}, ["gn-hom"], 16, seed=5), say=lambda s: None)
+    silent = result.summary["methods"]["gn-hom"]["silent"]
+    assert ("misregistration", "2") in [(s["condition"], s["strength"]) for s in silent]
+
+
+def test_a_rerun_measures_only_the_missing_cells(small, tmp_path):
+    out, _, _ = small
+    shutil.copytree(out, tmp_path / "again")
+    said: list[str] = []
+    result = run_stability(tmp_path / "again", plan=StabilityPlan({**SMALL, "noise": (8.0, 0.25)}, ["gn-hom"], 16, seed=5), say=said.append)
+    measured = [line for line in said if line.startswith("[")]
+    assert len(measured) == 1 and "noise, 0.25" in measured[0]
+    assert len(list(csv.DictReader(result.table.open()))) == 5
