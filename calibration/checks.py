@@ -28,6 +28,7 @@ summary; where the problem is local, the cube's ``mask`` is 0 there):
 | ``underexposed`` | skin or reference below ``underexposure_level`` in the window | 0 there |
 | ``many_invalid`` | a band's saturated + under-exposed share of the window exceeds ``max_flagged_fraction`` | — |
 | ``gray_card_drift`` | \\|flash factor − 1\\| > ``gray_card_drift`` (still corrected; a failing flash or a shadow on the card) | — |
+| ``card_spectrum`` | the gray card, read against the Spectralon, departs at a band from its other bands by > ``card_spectrum_limit`` (a wrong certified value) | — |
 | ``misaligned`` | a band's alignment shift exceeds ``max_misalignment_px`` (cube px) | — |
 | ``alignment_failed`` | ECC did not converge for a band (too little texture), or found a shift beyond ``max_alignment_px``; the band is left as rectified | — |
 | ``edge_model`` | the edge model failed on a side of a window; that side keeps its derivative-peak line | — |
@@ -209,6 +210,28 @@ def gray_card_flags(band_nm: float, flash_factor: float, settings: CalibrationSe
             )
         ]
     return []
+
+
+def card_spectrum_flags(wavelengths_nm: list[float], readings: list[Optional[float]], settings: CalibrationSettings) -> list[Flag]:
+    """Flags for bands where the gray card's reading (its level over the Spectralon's in the reference frame,
+    times the Spectralon's certified value) departs from the median of all bands' by more than
+    ``card_spectrum_limit``. The card is grey (flat, ``targets.gray_card_reflectance``) and seen with the
+    Spectralon in one frame, so the flash and the exposure cancel and what the lens does to the card's
+    corner of the view is the same at every band: a band that stands out carries a wrong certified value
+    (``targets.spectralon_reflectance``) or a bad reference frame, which the skin's maps would otherwise
+    absorb without a trace (a blue band into melanin: docs/stability.md)."""
+    known = [(w, r) for w, r in zip(wavelengths_nm, readings) if r is not None and np.isfinite(r) and r > 0]
+    if len(known) < 3:
+        return []
+    middle = float(np.median([r for _, r in known]))
+    flags = []
+    for w, r in known:
+        off = r / middle - 1.0
+        if abs(off) > settings.card_spectrum_limit:
+            flags.append(Flag("card_spectrum", w, f"{w:g} nm: the gray card reads {abs(off):.1%} {'bright' if off > 0 else 'dark'} against "
+                              f"its other bands (> {settings.card_spectrum_limit:.0%}); the band's reflectance is off by as much: check "
+                              "the Spectralon's certified value at this band (rig targets.spectralon_reflectance) and its reference frame", off))
+    return flags
 
 
 def alignment_flags(

@@ -45,7 +45,8 @@ from ..formats.resources import require_memory
 from ..formats.rig import RigConfig
 from ..formats.version import software_version
 from .align import align_bands, apply_alignment
-from .checks import BandFrames, Flag, alignment_flags, check_reference, exposure_flags, gray_card_flags, select_frames, verify_files
+from .checks import (BandFrames, Flag, alignment_flags, card_spectrum_flags, check_reference, exposure_flags, gray_card_flags,
+                     select_frames, verify_files)
 from .corrections import band_factors, gray_card_level, reflectance_ratio, roi_to_superpixels, subtract_dark
 from .errors import CalibrationError
 from .raw import RawImage, cell_centroid, cell_weights, read_raw
@@ -165,6 +166,7 @@ def _calibrate(inputs: _Inputs, settings: CalibrationSettings, staging: Staging,
         cube_r, mask = _to_cube_grid(stack, valid, inputs.rig, settings)
     entries = _band_entries(bands, alignment, cube_r, mask)
     flags = [f for b in bands for f in b.flags] + alignment.flags
+    flags += card_spectrum_flags([b.wavelength_nm for b in inputs.bands], [b.entry["gray_card_reading"] for b in bands], settings)
     cube = Cube(torch.from_numpy(cube_r), torch.from_numpy(mask), _cube_header(inputs, entries, settings))
     report = _calibration_report(inputs, entries, flags, mask, settings)
     with clock("write"):
@@ -251,6 +253,8 @@ def _calibrate_band(
         else:
             refl, defined = reflectance_ratio(s_img, f_img, factors.scale, float(np.median(f_img[inside])))
         valid = defined & ~sat & ~under
+        # the card read against the Spectralon in the reference frame (checks.card_spectrum_flags)
+        card_reading = gray_ref / float(np.median(f_img[inside])) * factors.spectralon_reflectance if gray_ref is not None else None
         sat_fraction = float(np.mean(sat[inside]))
         under_fraction = float(np.mean((under & ~sat)[inside]))
     with clock("rectify"):
@@ -269,6 +273,7 @@ def _calibrate_band(
         "exposure": {"skin": bf.skin.exposure.model_dump(), "reference": bf.reference.exposure.model_dump()},
         **factors.as_dict(),
         "gray_card_dn": None if gray_ref is None else {"reference": gray_ref, "skin": gray_skin},
+        "gray_card_reading": _finite(card_reading) if card_reading is not None else None,
         "window_corners_px": superpixel_to_raw_xy(win.corners, centroid).tolist(),
         "cell_centroid_px": list(centroid),
         "window_edge_rms_px": 2.0 * win.edge_rms_px,

@@ -118,6 +118,10 @@ class CalibrationSettings(Strict):
         0.15, gt=0, description="Flag a band whose flash factor differs from 1 by more than this (fraction)."
     )
     max_misalignment_px: float = Field(1.0, gt=0, le=100, description="Flag a band whose alignment shift exceeds this (cube pixels).")
+    card_spectrum_limit: float = Field(
+        0.03, gt=0, description="Flag a band where the gray card, read against the Spectralon in the reference frame, departs "
+        "from its other bands by more than this (fraction): that band's certified Spectralon value or its reference frame is off."
+    )
     max_flagged_fraction: float = Field(
         0.05, ge=0, le=1, description="Flag a band whose saturated or under-exposed share of the window exceeds this."
     )

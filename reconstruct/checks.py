@@ -51,9 +51,11 @@ BAND_BIAS_LIMIT = 0.02
 RESIDUAL_NOISE_LIMIT = 1.5
 
 #: What the maps are meant to be read to: the median error per map (relative; β_m absolute) the demo and
-#: the analyses hold a fit to (the stability matrix's targets). A map whose median σ exceeds its target
-#: cannot meet it: the data are too noisy for that map, and the fit says so.
+#: the analyses hold a fit to (the stability matrix's targets). A map whose σ puts its median error beyond
+#: its target cannot be expected to meet it: the data are too noisy for that map, and the fit says so.
 MAP_TARGETS = {"C_m": 0.10, "beta_m": 0.1, "C_he": 0.25, "C_hd": 0.10}
+#: The median of |e| for a normal error e of standard deviation σ, over σ: a map's expected median error.
+MEDIAN_ABS_NORMAL = 0.6745
 
 
 def flag_value(name: str) -> int:
@@ -149,11 +151,12 @@ def residual_notes(ratio: float, limit: float = RESIDUAL_NOISE_LIMIT) -> list[st
 
 
 def precision_notes(sigma_median: dict[str, float], targets: dict[str, float] = MAP_TARGETS) -> list[str]:
-    """A line naming the maps whose median σ (relative; β_m absolute) exceeds the target they are read to."""
-    over = [(n, s) for n, s in sigma_median.items() if n in targets and s > targets[n]]
+    """A line naming the maps whose expected median error, ``MEDIAN_ABS_NORMAL`` × their median σ (relative;
+    β_m absolute), exceeds the target they are read to."""
+    over = [(n, MEDIAN_ABS_NORMAL * s) for n, s in sigma_median.items() if n in targets and MEDIAN_ABS_NORMAL * s > targets[n]]
     if not over:
         return []
-    listed = ", ".join(f"{n} ±{s:.0%}" if n != "beta_m" else f"{n} ±{s:.2f}" for n, s in over)
-    return [f"noise-limited maps ({listed} median σ, beyond "
+    listed = ", ".join(f"{n} {e:.0%}" if n != "beta_m" else f"{n} {e:.2f}" for n, e in over)
+    return [f"noise-limited maps: their σ puts the median error at {listed}, beyond the targets "
             + ", ".join(f"{n} {targets[n]:g}" for n, _ in over)
-            + "): more light per band (exposure, ISO, frames averaged) or coarser map grids would narrow them"]
+            + "; more light per band (exposure, ISO, frames averaged) or coarser map grids would narrow them"]

@@ -5,8 +5,9 @@ strength (``CONDITIONS``); each cell is one fit, measured against the truth the 
 from (``skinlayers.tradeoff``'s sessions: the demo's scene through the rig and the calibration):
 
 - where the condition lives decides what is simulated anew: on the calibrated cube (``"cube"``: the
-  camera's noise scaled, a band's or every band's calibration off, bands misregistered, a band blurred by
-  the subject's motion, a dead band; seconds a cell), in the capture (``"capture"``: the skin type, hairs,
+  camera's noise scaled, bands misregistered, a band blurred by the subject's motion, a dead band;
+  seconds a cell), in the calibration (``"calibration"``: the Spectralon's certified value wrong at one
+  band or at all, the base session calibrated anew), in the capture (``"capture"``: the skin type, hairs,
   the flash drifting between frames; a new session each), in the physics (``"physics"``: the shipped
   transport sessions of ``skinlayers.truths``, the skin rendered by Monte Carlo);
 - a cell **meets the targets** when each map's median error is within ``TARGETS`` (the demo's), the
@@ -58,13 +59,16 @@ class Condition:
     clean: object = None
 
 
-#: The conditions. Cube conditions act on the calibrated cube (``_perturb_cube``); capture conditions change
-#: the simulated scene or bench (``_capture_changes``); physics uses the shipped transport sessions.
+CERTIFICATE_UNIT = "relative error of the Spectralon's certified value the calibration uses"
+#: The conditions. Cube conditions act on the calibrated cube (``_perturb_cube``); calibration conditions
+#: calibrate the base session anew with the rig's record changed (``_recorded_rig``: the Spectralon's
+#: certified value wrong, its true value what the simulator photographed); capture conditions change the
+#: simulated scene or bench (``_capture_changes``); physics uses the shipped transport sessions.
 CONDITIONS: dict[str, Condition] = {
     "noise": Condition("cube", (0.25, 0.5, 1.0, 2.0, 4.0, 8.0), (0.25, 2.0, 8.0), "× the camera's noise", 1.0),
-    "band 430 nm off": Condition("cube", (-0.10, -0.08, -0.05, -0.02, 0.02, 0.05, 0.10), (-0.08, 0.05), "relative gain"),
-    "band 550 nm off": Condition("cube", (-0.10, -0.08, -0.05, -0.02, 0.02, 0.05, 0.10), (-0.08,), "relative gain"),
-    "all bands off": Condition("cube", (-0.10, -0.05, 0.05, 0.10), (-0.10, 0.10), "relative gain"),
+    "certificate 430 nm": Condition("calibration", (-0.10, -0.08, -0.05, -0.03, -0.02, 0.01), (-0.08, -0.03), CERTIFICATE_UNIT),
+    "certificate 550 nm": Condition("calibration", (-0.10, -0.08, -0.05, -0.03, -0.02, 0.01), (-0.08,), CERTIFICATE_UNIT),
+    "certificate all bands": Condition("calibration", (-0.10, -0.05, 0.01), (-0.10,), CERTIFICATE_UNIT),
     "misregistration": Condition("cube", (0.5, 1.0, 2.0, 3.0), (1.0, 3.0), "cube px between neighbouring bands"),
     "motion blur": Condition("cube", (3, 5, 9), (5,), "px, one band (550 nm)"),
     "dead band": Condition("cube", (550,), (550,), "nm"),
@@ -84,9 +88,9 @@ METHODS: dict[str, dict] = {
 }
 QUICK_METHODS = ("auto", "homogeneous", "transport")
 #: The calibration's flags that say the cube may be wrong (the others say which pixels it masked).
-CALIBRATION_WARNINGS = ("many_invalid", "gray_card_drift", "misaligned", "alignment_failed")
+CALIBRATION_WARNINGS = ("many_invalid", "gray_card_drift", "card_spectrum", "misaligned", "alignment_failed")
 #: The cube band a one-band condition acts on.
-BAND_OF = {"band 430 nm off": 430.0, "band 550 nm off": 550.0, "motion blur": 550.0}
+BAND_OF = {"motion blur": 550.0}
 #: The base session: a diffusion session (the model at twice the fit's resolution) at this seed, not one
 #: the defaults were tuned on (the demo uses 0–2, the tradeoff 61–63).
 BASE_SEED = 71
@@ -182,10 +186,6 @@ def _perturb_cube(cube, truth_r: torch.Tensor, condition: str, strength):
     r = cube.reflectance.clone().float()
     if condition == "noise":
         r = truth_r.float() + float(strength) * (r - truth_r.float())
-    elif condition in ("band 430 nm off", "band 550 nm off"):
-        r[_band(cube, BAND_OF[condition])] *= 1.0 + float(strength)
-    elif condition == "all bands off":
-        r *= 1.0 + float(strength)
     elif condition == "misregistration":
         for j in range(r.shape[0]):  # neighbouring bands `strength` apart: every other band moved
             r[j] = _shift_x(r[j], float(strength) * (0.5 if j % 2 else -0.5))
@@ -197,6 +197,23 @@ def _perturb_cube(cube, truth_r: torch.Tensor, condition: str, strength):
     else:
         raise ValueError(f"{condition!r} is not a cube condition")
     return Cube(r, cube.mask.clone(), cube.header)
+
+
+def _recorded_rig(manifest: dict, condition: str, strength) -> dict:
+    """The session's ``manifest`` with the rig's certified Spectralon value off by ``strength`` (relative) at
+    the condition's band, or at every band."""
+    import copy  # noqa: PLC0415
+
+    from .formats.rig import rig_from_dict  # noqa: PLC0415
+
+    out = copy.deepcopy(manifest)
+    rig = rig_from_dict(out["rig"], "manifest rig")
+    every = condition == "certificate all bands"
+    wrong = None if every else float(condition.split()[1])
+    out["rig"]["targets"]["spectralon_reflectance"] = {
+        b.wavelength_nm: rig.targets.spectralon_at(b.wavelength_nm) * (1.0 + float(strength) if every or b.wavelength_nm == wrong else 1.0)
+        for b in rig.bands}
+    return out
 
 
 def _capture_changes(condition: str, strength) -> tuple[dict, dict]:
@@ -225,11 +242,11 @@ class _Runner:
 
         condition, strength, method = case["condition"], case["strength"], case["method"]
         spec, changes = self._session_of(condition, strength)
-        folder = self._session(spec, changes)
+        where = CONDITIONS[condition].where if condition in CONDITIONS else "clean"
+        folder = self._session(spec, changes, (condition, strength) if where == "calibration" else None)
         cube = read_cube(folder / "calibrated" / "cube.exr")
         truth_r = _truth_reflectance(folder / "session")
         calibration_notes = _calibration_flags(folder / "calibrated")
-        where = CONDITIONS[condition].where if condition in CONDITIONS else "clean"
         noise_scale = float(strength) if condition == "noise" else 1.0
         if where == "cube":
             cube = _perturb_cube(cube, truth_r, condition, strength)
@@ -257,14 +274,36 @@ class _Runner:
             return SessionSpec("diffusion", self.plan.seed, self.plan.size_px), _capture_changes(condition, strength)
         return SessionSpec("diffusion", self.plan.seed, self.plan.size_px), ({}, {})
 
-    def _session(self, spec: SessionSpec, changes: tuple[dict, dict]) -> Path:
-        """The session's folder (``session/``, ``calibrated/``), simulated and calibrated once."""
+    def _session(self, spec: SessionSpec, changes: tuple[dict, dict], recalibrate: tuple | None = None) -> Path:
+        """The session's folder (``session/``, ``calibrated/``), simulated and calibrated once; with
+        ``recalibrate`` (a calibration condition and strength) the base session calibrated anew under it."""
         scene_over, simulation_over = changes
         label = _slug(json.dumps([scene_over, simulation_over], sort_keys=True)) if (scene_over or simulation_over) else "base"
         folder = self.out / "sessions" / f"{spec.name}-{label}"
         if not ((folder / "calibrated" / "cube.exr").exists() and (folder / "session" / "truth" / "maps.exr").exists()):
             make_session(spec, folder, scene_over, simulation_over)
-        return folder
+        if recalibrate is None:
+            return folder
+        condition, strength = recalibrate
+        variant = self.out / "sessions" / f"{spec.name}-{_slug(condition)}-{cell_text(strength)}"
+        if not (variant / "calibrated" / "cube.exr").exists():
+            _recalibrated(folder, variant, condition, strength)
+        return variant
+
+
+def _recalibrated(base: Path, variant: Path, condition: str, strength) -> None:
+    """``base``'s session copied to ``variant`` with the rig's record changed (``_recorded_rig``; its frames
+    and truth as they were), and calibrated."""
+    import shutil  # noqa: PLC0415
+
+    from .calibration import calibrate_session  # noqa: PLC0415
+
+    if variant.exists():
+        shutil.rmtree(variant)  # an incomplete one from an interrupted run
+    shutil.copytree(base / "session", variant / "session")
+    manifest = variant / "session" / "manifest.json"
+    manifest.write_text(json.dumps(_recorded_rig(json.loads(manifest.read_text()), condition, strength), indent=1))
+    calibrate_session(variant / "session", variant / "calibrated")
 
 
 def _slug(text: str) -> str:

@@ -33,9 +33,6 @@ def test_cube_conditions_change_what_they_name_and_nothing_else():
     cube = _cube(noisy)
     scaled = _perturb_cube(cube, truth, "noise", 4.0).reflectance
     torch.testing.assert_close(scaled - truth, 4.0 * (noisy - truth))
-    dark = _perturb_cube(cube, truth, "band 430 nm off", -0.08).reflectance
-    torch.testing.assert_close(dark[0], 0.92 * noisy[0])
-    torch.testing.assert_close(dark[1:], noisy[1:])
     dead = _perturb_cube(cube, truth, "dead band", 550).reflectance
     assert float(dead[4].max()) < 1e-3 and torch.equal(dead[5:], noisy[5:])
     step = torch.zeros(9, 12, 12)
@@ -66,17 +63,17 @@ def test_a_cells_verdict_names_each_missed_target():
 
 
 def test_the_summary_finds_breaking_points_silent_cells_and_false_alarms():
-    plan = StabilityPlan({"noise": (0.25, 2.0, 4.0, 8.0), "band 430 nm off": (-0.10, -0.05, 0.05)}, ["auto"])
+    plan = StabilityPlan({"noise": (0.25, 2.0, 4.0, 8.0), "certificate 430 nm": (-0.10, -0.05, 0.01)}, ["auto"])
     rows = [{"condition": "clean", "strength": "", "method": "auto", "meets_targets": "True", "detected": "False", "missed": "", "message": ""}]
     cells = {("noise", "0.25"): (True, False), ("noise", "2"): (True, True), ("noise", "4"): (False, True), ("noise", "8"): (False, False),
-             ("band 430 nm off", "-0.1"): (False, False), ("band 430 nm off", "-0.05"): (False, True), ("band 430 nm off", "0.05"): (True, False)}
+             ("certificate 430 nm", "-0.1"): (False, False), ("certificate 430 nm", "-0.05"): (False, True), ("certificate 430 nm", "0.01"): (True, False)}
     for (c, s), (met, told) in cells.items():
         rows.append({"condition": c, "strength": s, "method": "auto", "meets_targets": str(met), "detected": str(told),
                      "missed": "" if met else "C_m", "message": "a warning" if told else ""})
     summary = summarise(rows, plan)["methods"]["auto"]
     assert summary["breaking_points"]["noise"]["first_miss"] == 4.0
-    assert summary["breaking_points"]["band 430 nm off"]["first_miss"] == -0.05  # nearest the clean data
-    assert [(s["condition"], s["strength"]) for s in summary["silent"]] == [("noise", "8"), ("band 430 nm off", "-0.1")]
+    assert summary["breaking_points"]["certificate 430 nm"]["first_miss"] == -0.05  # nearest the clean data
+    assert [(s["condition"], s["strength"]) for s in summary["silent"]] == [("noise", "8"), ("certificate 430 nm", "-0.1")]
     assert [(s["condition"], s["strength"]) for s in summary["false_alarms"]] == [("noise", "2")]
     assert summary["meeting_targets"] == 4 and summary["cells"] == 8
 
@@ -84,9 +81,11 @@ def test_the_summary_finds_breaking_points_silent_cells_and_false_alarms():
 def test_the_fits_residual_and_precision_warnings_fire_beyond_their_limits_only():
     assert residual_notes(RESIDUAL_NOISE_LIMIT * 0.99) == [] and residual_notes(math.nan) == []
     assert "2.0× the cube's noise" in residual_notes(2.0)[0]
-    assert precision_notes({n: 0.9 * t for n, t in MAP_TARGETS.items()} | {"C_bc": 5.0}) == []  # C_bc has no target
-    line = precision_notes({"C_m": 0.3, "beta_m": 0.05, "C_hd": 0.2})[0]
-    assert "C_m ±30%" in line and "C_hd ±20%" in line and "beta_m" not in line
+    # the expected median error of a normal error is 0.6745 σ
+    assert precision_notes({n: 1.4 * t for n, t in MAP_TARGETS.items()} | {"C_bc": 5.0}) == []  # C_bc has no target
+    line = precision_notes({"C_m": 0.3, "beta_m": 0.14, "C_hd": 0.2, "C_he": 0.3})[0]
+    assert "C_m 20%" in line and "C_hd 13%" in line and "beta_m" not in line and "C_he" not in line
+    assert "beta_m 0.11" in precision_notes({"beta_m": 0.16})[0]
 
 
 def test_the_plans_name_known_conditions_and_methods():
@@ -97,7 +96,7 @@ def test_the_plans_name_known_conditions_and_methods():
             assert set(strengths) <= set(CONDITIONS[name].strengths), name
 
 
-SMALL = {"noise": (8.0,), "misregistration": (2.0,), "dead band": (550,)}
+SMALL = {"noise": (8.0,), "misregistration": (2.0,), "dead band": (550,), "certificate 430 nm": (-0.08,)}
 
 
 @pytest.fixture(scope="module")
@@ -121,6 +120,7 @@ def test_every_failing_cell_of_a_small_matrix_is_told(small):
         assert r["detected"] == "True" and r["message"], r
     assert "residual" in next(r for r in faults if r["condition"] == "misregistration")["message"]
     assert "550 nm left out" in next(r for r in faults if r["condition"] == "dead band")["message"]
+    assert "card_spectrum 430 nm" in next(r for r in faults if r["condition"] == "certificate 430 nm")["message"]
     summary = json.loads(result.summary_path.read_text())
     assert [s for s in summary["methods"]["gn-hom"]["silent"] if s["condition"] != "clean"] == []
     assert [p.name for p in result.charts] == ["stability_gn-hom.png"] and result.charts[0].stat().st_size > 0
@@ -138,6 +138,34 @@ def test_with_the_fits_checks_switched_off_a_failure_goes_silent(small, tmp_path
     assert ("misregistration", "2") in [(s["condition"], s["strength"]) for s in silent]
 
 
+def test_with_the_calibrations_card_check_switched_off_a_wrong_certificate_goes_silent(small, tmp_path, monkeypatch):
+    out, _, _ = small
+    shutil.copytree(out / "sessions", tmp_path / "sessions", ignore=shutil.ignore_patterns("*certificate*"))
+    from skinlayers.calibration import pipeline
+
+    monkeypatch.setattr(pipeline, "card_spectrum_flags", lambda *args: [])
+    result = run_stability(tmp_path, plan=StabilityPlan({"certificate 430 nm": (-0.08,)}, ["gn-hom"], 16, seed=5), say=lambda s: None)
+    silent = result.summary["methods"]["gn-hom"]["silent"]
+    assert ("certificate 430 nm", "-0.08") in [(s["condition"], s["strength"]) for s in silent]
+
+
+def test_a_wrong_certificate_is_recorded_at_its_band_only():
+    from skinlayers.stability import _recorded_rig
+
+    manifest = {"rig": _default_rig()}
+    changed = _recorded_rig(manifest, "certificate 430 nm", -0.08)["rig"]["targets"]["spectralon_reflectance"]
+    assert changed[430.0] == pytest.approx(0.99 * 0.92) and all(v == pytest.approx(0.99) for w, v in changed.items() if w != 430.0)
+    every = _recorded_rig(manifest, "certificate all bands", -0.05)["rig"]["targets"]["spectralon_reflectance"]
+    assert len(every) == 9 and all(v == pytest.approx(0.99 * 0.95) for v in every.values())
+    assert manifest["rig"]["targets"]["spectralon_reflectance"] == 0.99  # the session's own record untouched
+
+
+def _default_rig() -> dict:
+    from skinlayers.acquire.rig import load_rig
+
+    return load_rig().model_dump(mode="json")
+
+
 def test_a_rerun_measures_only_the_missing_cells(small, tmp_path):
     out, _, _ = small
     shutil.copytree(out, tmp_path / "again")
@@ -145,4 +173,4 @@ def test_a_rerun_measures_only_the_missing_cells(small, tmp_path):
     result = run_stability(tmp_path / "again", plan=StabilityPlan({**SMALL, "noise": (8.0, 0.25)}, ["gn-hom"], 16, seed=5), say=said.append)
     measured = [line for line in said if line.startswith("[")]
     assert len(measured) == 1 and "noise, 0.25" in measured[0]
-    assert len(list(csv.DictReader(result.table.open()))) == 5
+    assert len(list(csv.DictReader(result.table.open()))) == 6

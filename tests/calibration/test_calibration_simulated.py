@@ -175,6 +175,25 @@ def test_without_a_target_factor_the_scale_is_off_by_it(clean, calibrated, switc
     np.testing.assert_allclose(_ratio(calibrated(clean, **{switch: False}), calibrated(clean)), factor, rtol=1e-4)
 
 
+def test_a_wrong_certified_value_at_one_band_is_flagged_by_the_gray_card(sim, calibrated, tmp_path):
+    # the card, read against the Spectralon in each reference frame, is flat across the bands; a certificate
+    # 6% low at 550 nm (the simulator photographed the true 0.99) makes that band, and only it, read dark
+    assert [f for f in calibrated(sim).flags if f.code == "card_spectrum"] == []
+    readings = [b["gray_card_reading"] for b in calibrated(sim).report["bands"]]
+    assert max(readings) / min(readings) < 1.01
+    session = tmp_path / "session"
+    shutil.copytree(sim.path, session)
+    manifest = read_manifest(session)
+    rig = dict(manifest.rig)
+    rig["targets"] = {**rig["targets"], "spectralon_reflectance": {430: 0.99, 550: 0.99 * 0.94, 670: 0.99}}
+    write_manifest(session, manifest.model_copy(update={"rig": rig}))
+    result = calibrate_session(session, tmp_path / "out")
+    flags = [f for f in result.flags if f.code == "card_spectrum"]
+    assert [f.band_nm for f in flags] == [550.0] and flags[0].value == pytest.approx(-0.06, abs=0.005)
+    assert "certified value" in flags[0].message
+    assert _ratio(result, calibrated(sim))[1] == pytest.approx(0.94, rel=1e-4)
+
+
 def test_without_the_flat_field_the_vignetting_stays(clean, calibrated):
     base, off = calibrated(clean), calibrated(clean, flat_field=False)
     mask, cube_px = base.cube.mask.numpy(), clean.bench.rig.geometry.cube_px
