@@ -119,7 +119,7 @@ class CalibrationSettings(Strict):
     )
     max_misalignment_px: float = Field(1.0, gt=0, le=100, description="Flag a band whose alignment shift exceeds this (cube pixels).")
     card_spectrum_limit: float = Field(
-        0.03, gt=0, description="Flag a band where the gray card, read against the Spectralon in the reference frame, departs "
+        0.02, gt=0, description="Flag a band where the gray card, read against the Spectralon in the reference frame, departs "
         "from its other bands by more than this (fraction): that band's certified Spectralon value or its reference frame is off."
     )
     max_flagged_fraction: float = Field(

@@ -34,6 +34,7 @@ FLAG_BITS = {
     "not_converged": 3,  # the Gauss–Newton step still proposed at the end moves a parameter by > σ/2
     "high_residual": 4,  # residual RMS above high_residual_factor × the median pixel's
     "band_excluded": 5,  # a dead band was left out of the whole fit
+    "hair": 6,  # on a hair or in its halo (hairs.py): the model has no hair, the maps here are biased
 }
 
 

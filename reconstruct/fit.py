@@ -35,6 +35,7 @@ from .checks import DataChecks, band_bias, band_bias_notes, check_cube, flag_val
 from .fidelity import PATCH_MM, ForwardChoice, crosstalk_check, spatial_structure, uniform_light_factor, window_light_factor
 from .gauss_newton import curvature_and_columns, level_step
 from .grid_choice import band_noise, choose_map_grids
+from .hairs import HairFinding, find_hairs, hair_notes, hair_widening
 from .optimizers import METHODS, OptimResult
 from .problem import HomogeneousProblem, LevelProblem, RenderCounter
 from .schur import marginal_variance
@@ -124,6 +125,7 @@ class MapFit:
     band_bias: dict[str, float] = field(default_factory=dict)
     residual_over_noise: float = math.nan
     sigma_median: dict[str, float] = field(default_factory=dict)
+    hairs: dict | None = None
 
     @property
     def kept_levels(self) -> list[dict]:
@@ -185,6 +187,7 @@ def fit_cube(
     say = progress or (lambda event: None)
     renderer.model.tables(wl, progress=lambda j, n: say(FitEvent("tables", j, n)))
     target = cube.reflectance.to(device=dev, dtype=dtype)
+    hairs = _hairs(cube, checks)
     levels = pyramid(target, checks.fit_mask.to(dev), cube.mm_per_pixel, settings.coarsest_px)
     pixels = tuple(lv.shape[0] * lv.shape[1] for lv in levels)
     counter = RenderCounter()
@@ -271,7 +274,7 @@ def fit_cube(
         x, log_scale = extend(result.x, problem.index), result.log_scale
     say(FitEvent("final", len(levels) - 1, len(levels), pixels=pixels))
     renderer_fit = forward is None or forward.chosen == "heterogeneous"
-    out = _finish(problem, result, x, log_scale, checks, settings, cube.mm_per_pixel, renderer_fit)
+    out = _finish(problem, result, x, log_scale, checks, settings, cube.mm_per_pixel, renderer_fit, hairs)
     return MapFit(
         **out, checks=checks, wavelength_nm=wl, view_angle_deg=view, view_angle_source=view_source, band_fwhm_nm=fwhm,
         band_fwhm_source=fwhm_source, levels=records,
@@ -455,7 +458,7 @@ def _level_record(problem: LevelProblem, result: OptimResult, passes: list[int],
 
 
 def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: DataChecks, settings: FitSettings, mm: float,
-            renderer_fit: bool = True) -> dict:
+            renderer_fit: bool = True, hairs: HairFinding | None = None) -> dict:
     """Residuals, flags and uncertainties on the finest grid (σ widened by ``uncertainty.py``: the
     cross-talk where the renderer's fit was kept, the variation finer than the nodes)."""
     ev = result.evaluation
@@ -516,12 +519,20 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
         flags |= flag_value("band_excluded")
     bias = band_bias(residual, problem.level.target, used, problem.mask & ~checks.saturated.to(x.device))
     checks.warn(band_bias_notes(bias, problem.wavelength_nm.tolist()))
-    ratio = _residual_over_noise(residual, problem.level.target, used, problem.mask & ~checks.saturated.to(x.device))
+    seen = problem.mask & ~checks.saturated.to(x.device)
+    noise = _cube_noise(problem.level.target, seen)
+    ratio = _residual_over_noise(residual, used, seen, noise)
     checks.warn(residual_notes(ratio))
-    precision = _sigma_median(p, sigma_pix, problem)
+    if hairs is not None:
+        flags[hairs.flagged.reshape(-1).to(x.device)] |= flag_value("hair")
+        checks.warn(hair_notes(hairs, int((problem.mask | hairs.flagged.to(x.device)).sum())))
+    clear = ~hairs.flagged.reshape(-1).to(x.device)[problem.pixels] if hairs is not None else None
+    precision = _sigma_median(p, sigma_pix, problem, clear)
     checks.warn(precision_notes(precision))
     sigma = torch.full((N_PARAMS, h * w), float("nan"), dtype=x.dtype, device=x.device)
     sigma[:, problem.pixels] = sigma_pix.T.to(x.dtype)
+    if hairs is not None and hairs.count:
+        sigma *= hair_widening(hairs.flagged.reshape(-1).to(x.device), PARAMETER_NAMES).to(sigma)
     noise_sigma = torch.full_like(sigma, float("nan"))
     noise_sigma[:, problem.pixels] = sigma_noise.T.to(x.dtype)
     return {
@@ -530,25 +541,44 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
         "sigma_noise": noise_sigma.reshape(N_PARAMS, h, w), "maps_at_bound": nodes_at_bound,
         "band_bias": {f"{problem.wavelength_nm[j]:g}": round(b, 5) for j, b in bias.items()},
         "residual_over_noise": round(ratio, 4), "sigma_median": {n: round(v, 5) for n, v in precision.items()},
+        "hairs": hairs.as_dict() if hairs is not None else None,
         "uncertainty": {**widening, "noise_sigma_median": {n: float(sigma_noise[:, k].median()) for k, n in enumerate(PARAMETER_NAMES)}},
     }
 
 
-def _residual_over_noise(residual: torch.Tensor, target: torch.Tensor, used: torch.Tensor, pixels: torch.Tensor) -> float:
-    """The residual's RMS over the cube's own noise (``band_noise``), both over ``pixels`` ``(H, W)`` and the
-    ``used`` bands; NaN where too few pixels have their neighbourhood to estimate the noise."""
+def _hairs(cube: Cube, checks: DataChecks) -> HairFinding | None:
+    """The hairs in the cube (``hairs.py``) over the pixels the loss may use; None where the cube is too
+    small to estimate its noise."""
+    noise = _cube_noise(cube.reflectance, checks.fit_mask)
+    if noise is None:
+        return None
+    return find_hairs(cube.reflectance, cube.wavelength_nm.tolist(), checks.fit_mask, cube.mm_per_pixel, noise)
+
+
+def _cube_noise(target: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor | None:
+    """Each band's noise σ ``(L,)`` estimated from the cube itself (``band_noise``) over ``pixels`` ``(H, W)``;
+    None where too few pixels have their neighbourhood in it."""
     try:
-        noise = band_noise(target, pixels)[used]
+        return band_noise(target, pixels)
     except ValueError:
+        return None
+
+
+def _residual_over_noise(residual: torch.Tensor, used: torch.Tensor, pixels: torch.Tensor, noise: torch.Tensor | None) -> float:
+    """The residual's RMS over the cube's noise ``(L,)``, both over ``pixels`` ``(H, W)`` and the ``used`` bands."""
+    if noise is None:
         return math.nan
     res = residual[used][:, pixels].double()
-    return float(res.pow(2).mean().sqrt() / noise.double().pow(2).mean().sqrt())
+    return float(res.pow(2).mean().sqrt() / noise[used].double().pow(2).mean().sqrt())
 
 
-def _sigma_median(p: torch.Tensor, sigma_pix: torch.Tensor, problem: LevelProblem) -> dict[str, float]:
-    """Each map's median σ over the fitted pixels: relative to the map's value, β_m absolute."""
+def _sigma_median(p: torch.Tensor, sigma_pix: torch.Tensor, problem: LevelProblem, clear: torch.Tensor | None = None) -> dict[str, float]:
+    """Each map's median σ over the fitted pixels (those ``clear`` ``(N,)`` of a hair where given): relative
+    to the map's value, β_m absolute."""
     values = problem.at_pixels(p).double()  # (N, N_PARAMS)
     sigma = sigma_pix.double()
+    if clear is not None and bool(clear.any()):
+        values, sigma = values[clear], sigma[clear]
     return {n: float((sigma[:, k] if n == "beta_m" else sigma[:, k] / values[:, k].abs().clamp_min(1e-12)).median())
             for k, n in enumerate(PARAMETER_NAMES)}
 

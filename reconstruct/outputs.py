@@ -97,6 +97,7 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
             "band_bias": fit.band_bias,
             "residual_over_noise": fit.residual_over_noise if math.isfinite(fit.residual_over_noise) else None,
             "sigma_median": fit.sigma_median,
+            "hairs": fit.hairs,
         },
         "flags": {"bits": FLAG_BITS, "counts": flags},
         "residual": residual_stats(fit.residual[:, visible], fit.residual_rms[visible], wl, used),

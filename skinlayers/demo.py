@@ -95,12 +95,13 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
 
 
 def scored_pixels(flags):
-    """The pixels a fit is scored on ``(H, W)`` bool, from its ``flags`` ``(H, W)``: visible, and not flagged
-    for a high residual (hairs and veins, which the fit leaves to the residual)."""
+    """The pixels a fit is scored on ``(H, W)`` bool, from its ``flags`` ``(H, W)``: visible, not flagged for a
+    high residual (hairs and veins, which the fit leaves to the residual) nor as a hair's or its halo."""
     from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
 
     flags = flags.to("cpu").long()
-    return (((flags >> FLAG_BITS["masked"]) & 1) == 0) & (((flags >> FLAG_BITS["high_residual"]) & 1) == 0)
+    return (((flags >> FLAG_BITS["masked"]) & 1) == 0) & (((flags >> FLAG_BITS["high_residual"]) & 1) == 0) \
+        & (((flags >> FLAG_BITS["hair"]) & 1) == 0)
 
 
 def map_errors(truth, fit, keep) -> dict:

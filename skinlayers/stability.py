@@ -10,14 +10,16 @@ from (``skinlayers.tradeoff``'s sessions: the demo's scene through the rig and t
   band or at all, the base session calibrated anew), in the capture (``"capture"``: the skin type, hairs,
   the flash drifting between frames; a new session each), in the physics (``"physics"``: the shipped
   transport sessions of ``skinlayers.truths``, the skin rendered by Monte Carlo);
-- a cell **meets the targets** when each map's median error is within ``TARGETS`` (the demo's), the
+- a cell **meets the targets** when each map's median error is within ``TARGETS`` (the demo's) over the
+  scored pixels (``demo.scored_pixels``: visible, not flagged for a high residual or a hair), the
   residual is at the camera's noise (``RESIDUAL_AT_NOISE``) and σ covers ``SIGMA_COVER`` of the truth
-  within 2σ for every targeted map;
+  within 2σ for every targeted map, on the scored pixels and on those flagged for a hair;
 - a cell is **detected** when the calibration or the fit warned (a flag of ``CALIBRATION_WARNINGS`` in
   ``calibration.json``; a warning in ``fit.json``'s ``data_checks`` and on the command line) or refused
   the data with an error. A cell that misses a
-  target and is not detected is a **silent failure**; one that meets them and still says something is a
-  **false alarm** (counted: a check that cries on good data teaches users to ignore it).
+  target and is not detected is a **silent failure**; one detected whose words do not name its condition
+  (``Condition.cause``) is **told, not named**; one that meets the targets and still warns is a **false
+  alarm** (counted: a check that cries on good data teaches users to ignore it).
 
 The table (``stability.csv``) is written row by row and resumed; ``stability.json`` holds per method
 the first strength of each condition that misses a target (its breaking point) and the silent cells;
@@ -52,11 +54,13 @@ SIGMA_COVER = 0.85
 class Condition:
     """A fault and its strengths (``clean``: the strength that leaves the data as simulated)."""
 
-    where: str  # "cube", "capture" or "physics"
+    where: str  # "cube", "calibration", "capture" or "physics"
     strengths: tuple
     quick: tuple
     unit: str
     clean: object = None
+    #: Words a warning must hold to name this condition as a cause (any of them).
+    cause: tuple[str, ...] = ()
 
 
 CERTIFICATE_UNIT = "relative error of the Spectralon's certified value the calibration uses"
@@ -65,17 +69,17 @@ CERTIFICATE_UNIT = "relative error of the Spectralon's certified value the calib
 #: certified value wrong, its true value what the simulator photographed); capture conditions change the
 #: simulated scene or bench (``_capture_changes``); physics uses the shipped transport sessions.
 CONDITIONS: dict[str, Condition] = {
-    "noise": Condition("cube", (0.25, 0.5, 1.0, 2.0, 4.0, 8.0), (0.25, 2.0, 8.0), "× the camera's noise", 1.0),
-    "certificate 430 nm": Condition("calibration", (-0.10, -0.08, -0.05, -0.03, -0.02, 0.01), (-0.08, -0.03), CERTIFICATE_UNIT),
-    "certificate 550 nm": Condition("calibration", (-0.10, -0.08, -0.05, -0.03, -0.02, 0.01), (-0.08,), CERTIFICATE_UNIT),
-    "certificate all bands": Condition("calibration", (-0.10, -0.05, 0.01), (-0.10,), CERTIFICATE_UNIT),
-    "misregistration": Condition("cube", (0.5, 1.0, 2.0, 3.0), (1.0, 3.0), "cube px between neighbouring bands"),
-    "motion blur": Condition("cube", (3, 5, 9), (5,), "px, one band (550 nm)"),
-    "dead band": Condition("cube", (550,), (550,), "nm"),
-    "skin type": Condition("capture", ("I interior", "IV exterior", "V exterior"), ("V exterior",), "DWRR08 Table 2 row"),
-    "hairs": Condition("capture", (5, 20), (5,), "hairs in the view"),
-    "flash drift": Condition("capture", (0.1, 0.2), (0.2,), "frame-to-frame flash jitter (relative)"),
-    "physics": Condition("physics", (41, 42, 43), (41,), "transport session (Monte Carlo) seed"),
+    "noise": Condition("cube", (0.25, 0.5, 1.0, 2.0, 4.0, 8.0), (0.25, 2.0, 8.0), "× the camera's noise", 1.0, cause=("noise-limited",)),
+    "certificate 430 nm": Condition("calibration", (-0.10, -0.08, -0.05, -0.03, -0.02, 0.01), (-0.08, -0.03), CERTIFICATE_UNIT, cause=("certified value",)),
+    "certificate 550 nm": Condition("calibration", (-0.10, -0.08, -0.05, -0.03, -0.02, 0.01), (-0.08,), CERTIFICATE_UNIT, cause=("certified value",)),
+    "certificate all bands": Condition("calibration", (-0.10, -0.05, 0.01), (-0.10,), CERTIFICATE_UNIT, cause=("certified value",)),
+    "misregistration": Condition("cube", (0.5, 1.0, 2.0, 3.0), (1.0, 3.0), "cube px between neighbouring bands", cause=("misregistration",)),
+    "motion blur": Condition("cube", (3, 5, 9), (5,), "px, one band (550 nm)", cause=("motion",)),
+    "dead band": Condition("cube", (550,), (550,), "nm", cause=("left out",)),
+    "skin type": Condition("capture", ("I interior", "IV exterior", "V exterior"), ("V exterior",), "DWRR08 Table 2 row", cause=("noise-limited", "bound")),
+    "hairs": Condition("capture", (5, 20), (5,), "hairs in the view", cause=("hair",)),
+    "flash drift": Condition("capture", (0.1, 0.2), (0.2,), "frame-to-frame flash jitter (relative)", cause=("flash",)),
+    "physics": Condition("physics", (41, 42, 43), (41,), "transport session (Monte Carlo) seed", cause=("physics",)),
 }
 #: The methods: fit settings over the defaults (``skinlayers.tradeoff.INVERSE_CONFIGS``' names where shared).
 METHODS: dict[str, dict] = {
@@ -95,6 +99,7 @@ BAND_OF = {"motion blur": 550.0}
 #: the defaults were tuned on (the demo uses 0–2, the tradeoff 61–63).
 BASE_SEED = 71
 COLUMNS = ("condition", "strength", "method", "unit", *(f"error_{m}" for m in MAPS), "residual_over_noise", "sigma_cover",
+           "hair_flagged", "sigma_cover_flagged",
            "iterations", "capped", "meets_targets", "missed", "detected", "message", "wall_s")
 KEY = ("condition", "strength", "method")
 
@@ -244,6 +249,8 @@ class _Runner:
         spec, changes = self._session_of(condition, strength)
         where = CONDITIONS[condition].where if condition in CONDITIONS else "clean"
         folder = self._session(spec, changes, (condition, strength) if where == "calibration" else None)
+        # the camera's noise: the cube the session's frames calibrate into with a right record, against its truth
+        clean_cube = (self._session(spec, changes) if where == "calibration" else folder) / "calibrated" / "cube.exr"
         cube = read_cube(folder / "calibrated" / "cube.exr")
         truth_r = _truth_reflectance(folder / "session")
         calibration_notes = _calibration_flags(folder / "calibrated")
@@ -258,7 +265,7 @@ class _Runner:
             return {"detected": True, "message": f"refused: {error}", "meets_targets": False, "missed": "refused",
                     "wall_s": time.perf_counter() - start}
         wall = time.perf_counter() - start
-        row = _against_truth(fit, cube, folder / "session", truth_r, noise_scale)
+        row = _against_truth(fit, folder / "session", truth_r, clean_cube, noise_scale)
         notes = [*calibration_notes, *fit.checks.warnings]
         verdict = cell_verdict(row)
         row.update(iterations=sum(lv["iterations"] for lv in fit.kept_levels),
@@ -323,32 +330,36 @@ def _calibration_flags(calibrated: Path) -> list[str]:
             if f.get("code") in CALIBRATION_WARNINGS]
 
 
-def _against_truth(fit, cube, session: Path, truth_r: torch.Tensor, noise_scale: float) -> dict:
+def _against_truth(fit, session: Path, truth_r: torch.Tensor, clean_cube: Path, noise_scale: float) -> dict:
     """Each map's median error and σ coverage against the truth over the scored pixels, and the residual
-    over the camera's noise (the clean cube's difference from the truth, times ``noise_scale``)."""
+    over the camera's noise (``clean_cube``'s difference from the truth, times ``noise_scale``)."""
     import torch.nn.functional as F  # noqa: PLC0415
 
     from .demo import map_errors, scored_pixels  # noqa: PLC0415
     from .formats.cube import read_cube  # noqa: PLC0415
     from .model import PARAMETER_NAMES  # noqa: PLC0415
     from .model.maps_io import read_maps  # noqa: PLC0415
+    from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
 
     truth = read_maps(session / "truth" / "maps.exr")
     keep = scored_pixels(fit.flags.cpu())
+    hair = (((fit.flags.cpu().long() >> FLAG_BITS["hair"]) & 1) == 1) & (((fit.flags.cpu().long() >> FLAG_BITS["masked"]) & 1) == 0)
     errors = map_errors(truth, fit.maps, keep)
     row = {f"error_{m}": errors[m]["median_error"] for m in MAPS}
     k = truth.shape[-1] // fit.maps.shape[-1]
-    cover = []
+    cover, cover_hair = [], []
     for i, name in enumerate(PARAMETER_NAMES):
         if name not in TARGETS:
             continue
         t = getattr(truth, name)[None].double().cpu()
-        t = (F.avg_pool2d(t, k) if k > 1 else t)[0, 0][keep]
-        f = getattr(fit.maps, name)[0].double().cpu()[keep]
-        sigma = fit.sigma[i].double().cpu()[keep]
-        cover.append(float(((f - t).abs() <= 2 * sigma).double().mean()))
-    row["sigma_cover"] = min(cover)
-    clean = read_cube(session.parent / "calibrated" / "cube.exr").reflectance.double()
+        t = (F.avg_pool2d(t, k) if k > 1 else t)[0, 0]
+        f = getattr(fit.maps, name)[0].double().cpu()
+        within = (f - t).abs() <= 2 * fit.sigma[i].double().cpu()
+        cover.append(float(within[keep].double().mean()))
+        if bool(hair.any()):
+            cover_hair.append(float(within[hair].double().mean()))
+    row.update(sigma_cover=min(cover), hair_flagged=int(hair.sum()), sigma_cover_flagged=min(cover_hair) if cover_hair else math.nan)
+    clean = read_cube(clean_cube).reflectance.double()
     used = fit.checks.bands_used.cpu()
     noise = noise_scale * (clean - truth_r)[used][:, keep]
     residual = fit.residual.detach().double().cpu()[used][:, keep]
@@ -364,6 +375,9 @@ def cell_verdict(row: dict) -> list[str]:
         missed.append("residual")
     if not float(row["sigma_cover"]) >= SIGMA_COVER:
         missed.append("sigma")
+    flagged = row.get("sigma_cover_flagged")
+    if flagged not in (None, "") and math.isfinite(float(flagged)) and not float(flagged) >= SIGMA_COVER:
+        missed.append("sigma_flagged")
     return missed
 
 
@@ -375,25 +389,39 @@ def _truthy(value) -> bool:
 
 
 def summarise(rows: list[dict], plan: StabilityPlan) -> dict:
-    """Per method: each condition's breaking point (the first strength, in the sweep's order away from
-    the clean data, that misses a target) and the silent cells (a target missed, nothing said)."""
+    """Per method: each condition's breaking point (the failing strength nearest the clean data; "clean"
+    where the method misses a target on the clean session already), the silent cells (a target missed,
+    nothing said), those told in words that do not name their condition, and the false alarms."""
     methods = {}
     for method in plan.methods:
         mine = [r for r in rows if r["method"] == method]
         breaking = {}
+        clean = next((r for r in mine if r["condition"] == "clean"), None)
+        fails_clean = clean is not None and not _truthy(clean["meets_targets"])
         for name, strengths in plan.conditions.items():
             cells = {str(r["strength"]): r for r in mine if r["condition"] == name}
             failing = [s for s in strengths if cell_text(s) in cells and not _truthy(cells[cell_text(s)]["meets_targets"])]
-            breaking[name] = {"first_miss": _nearest_to_clean(failing, CONDITIONS[name]),
+            breaking[name] = {"first_miss": "clean" if fails_clean else _nearest_to_clean(failing, CONDITIONS[name]),
                               "missed": {cell_text(s): cells[cell_text(s)]["missed"] for s in failing}}
         silent = [{"condition": r["condition"], "strength": r["strength"], "missed": r["missed"]}
                   for r in mine if not _truthy(r["meets_targets"]) and not _truthy(r["detected"])]
         false_alarms = [{"condition": r["condition"], "strength": r["strength"], "message": r["message"]}
                         for r in mine if _truthy(r["meets_targets"]) and _truthy(r["detected"])]
-        methods[method] = {"breaking_points": breaking, "silent": silent, "false_alarms": false_alarms,
+        unnamed = [{"condition": r["condition"], "strength": r["strength"], "missed": r["missed"], "message": r["message"]}
+                   for r in mine if not _truthy(r["meets_targets"]) and _truthy(r["detected"]) and not names_cause(r)]
+        methods[method] = {"breaking_points": breaking, "silent": silent, "told_not_named": unnamed, "false_alarms": false_alarms,
                            "cells": len(mine), "meeting_targets": sum(_truthy(r["meets_targets"]) for r in mine)}
     return {"methods": methods, "silent_cells": sum(len(m["silent"]) for m in methods.values()),
+            "told_not_named_cells": sum(len(m["told_not_named"]) for m in methods.values()),
             "targets": {**TARGETS, "residual_over_noise": RESIDUAL_AT_NOISE, "sigma_cover": SIGMA_COVER}}
+
+
+def names_cause(row: dict) -> bool:
+    """Whether the cell's warnings name its condition (``Condition.cause``; a clean cell has none to name)."""
+    condition = CONDITIONS.get(row["condition"])
+    if condition is None:
+        return True
+    return any(word in str(row["message"]) for word in condition.cause)
 
 
 def _nearest_to_clean(failing: list, condition: Condition):

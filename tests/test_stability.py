@@ -60,6 +60,8 @@ def test_a_cells_verdict_names_each_missed_target():
     assert cell_verdict(_row(error_beta_m=0.2, residual_over_noise=RESIDUAL_AT_NOISE * 1.01)) == ["beta_m", "residual"]
     assert cell_verdict(_row(sigma_cover=SIGMA_COVER - 0.01)) == ["sigma"]
     assert cell_verdict(_row(error_C_m=math.nan)) == ["C_m"]  # a NaN error is no success
+    assert cell_verdict(_row(sigma_cover_flagged=0.7)) == ["sigma_flagged"]  # σ on a hair's pixels too
+    assert cell_verdict(_row(sigma_cover_flagged=math.nan)) == [] and cell_verdict(_row(sigma_cover_flagged="")) == []
 
 
 def test_the_summary_finds_breaking_points_silent_cells_and_false_alarms():
@@ -69,13 +71,20 @@ def test_the_summary_finds_breaking_points_silent_cells_and_false_alarms():
              ("certificate 430 nm", "-0.1"): (False, False), ("certificate 430 nm", "-0.05"): (False, True), ("certificate 430 nm", "0.01"): (True, False)}
     for (c, s), (met, told) in cells.items():
         rows.append({"condition": c, "strength": s, "method": "auto", "meets_targets": str(met), "detected": str(told),
-                     "missed": "" if met else "C_m", "message": "a warning" if told else ""})
+                     "missed": "" if met else "C_m", "message": ("noise-limited maps" if c == "noise" else "a warning") if told else ""})
     summary = summarise(rows, plan)["methods"]["auto"]
     assert summary["breaking_points"]["noise"]["first_miss"] == 4.0
     assert summary["breaking_points"]["certificate 430 nm"]["first_miss"] == -0.05  # nearest the clean data
     assert [(s["condition"], s["strength"]) for s in summary["silent"]] == [("noise", "8"), ("certificate 430 nm", "-0.1")]
     assert [(s["condition"], s["strength"]) for s in summary["false_alarms"]] == [("noise", "2")]
+    # told, but in words that do not name the condition
+    assert [(s["condition"], s["strength"]) for s in summary["told_not_named"]] == [("certificate 430 nm", "-0.05")]
     assert summary["meeting_targets"] == 4 and summary["cells"] == 8
+    # a method that misses a target on the clean session breaks there, whatever the condition
+    plan.methods = ["auto", "gn-hom"]
+    rows += [{**r, "method": "gn-hom", "meets_targets": "False" if r["condition"] == "clean" else r["meets_targets"]} for r in rows]
+    other = summarise(rows, plan)["methods"]["gn-hom"]["breaking_points"]
+    assert other["noise"]["first_miss"] == "clean" and other["certificate 430 nm"]["first_miss"] == "clean"
 
 
 def test_the_fits_residual_and_precision_warnings_fire_beyond_their_limits_only():
@@ -120,7 +129,11 @@ def test_every_failing_cell_of_a_small_matrix_is_told(small):
         assert r["detected"] == "True" and r["message"], r
     assert "residual" in next(r for r in faults if r["condition"] == "misregistration")["message"]
     assert "550 nm left out" in next(r for r in faults if r["condition"] == "dead band")["message"]
-    assert "card_spectrum 430 nm" in next(r for r in faults if r["condition"] == "certificate 430 nm")["message"]
+    certificate = next(r for r in faults if r["condition"] == "certificate 430 nm")
+    assert "card_spectrum 430 nm" in certificate["message"]
+    # the noise is the right record's cube against the truth, not the wrong record's (that would hold the 8% too)
+    clean = next(r for r in rows if r["condition"] == "clean")
+    assert float(certificate["residual_over_noise"]) > 0.8 * float(clean["residual_over_noise"])
     summary = json.loads(result.summary_path.read_text())
     assert [s for s in summary["methods"]["gn-hom"]["silent"] if s["condition"] != "clean"] == []
     assert [p.name for p in result.charts] == ["stability_gn-hom.png"] and result.charts[0].stat().st_size > 0
