@@ -389,19 +389,20 @@ def _truthy(value) -> bool:
 
 
 def summarise(rows: list[dict], plan: StabilityPlan) -> dict:
-    """Per method: each condition's breaking point (the failing strength nearest the clean data; "clean"
-    where the method misses a target on the clean session already), the silent cells (a target missed,
-    nothing said), those told in words that do not name their condition, and the false alarms."""
+    """Per method: the targets it misses on the clean session; each condition's breaking point (the
+    strength nearest the clean data that misses a target the clean session meets); the silent cells (a
+    target missed, nothing said), those told in words that do not name their condition, the false alarms."""
     methods = {}
     for method in plan.methods:
         mine = [r for r in rows if r["method"] == method]
         breaking = {}
         clean = next((r for r in mine if r["condition"] == "clean"), None)
-        fails_clean = clean is not None and not _truthy(clean["meets_targets"])
+        missed_clean = set(str(clean["missed"]).split()) if clean is not None else set()
         for name, strengths in plan.conditions.items():
             cells = {str(r["strength"]): r for r in mine if r["condition"] == name}
-            failing = [s for s in strengths if cell_text(s) in cells and not _truthy(cells[cell_text(s)]["meets_targets"])]
-            breaking[name] = {"first_miss": "clean" if fails_clean else _nearest_to_clean(failing, CONDITIONS[name]),
+            # a strength breaks the method where it misses a target the clean session meets
+            failing = [s for s in strengths if cell_text(s) in cells and set(str(cells[cell_text(s)]["missed"]).split()) - missed_clean]
+            breaking[name] = {"first_miss": _nearest_to_clean(failing, CONDITIONS[name]),
                               "missed": {cell_text(s): cells[cell_text(s)]["missed"] for s in failing}}
         silent = [{"condition": r["condition"], "strength": r["strength"], "missed": r["missed"]}
                   for r in mine if not _truthy(r["meets_targets"]) and not _truthy(r["detected"])]
@@ -409,7 +410,7 @@ def summarise(rows: list[dict], plan: StabilityPlan) -> dict:
                         for r in mine if _truthy(r["meets_targets"]) and _truthy(r["detected"])]
         unnamed = [{"condition": r["condition"], "strength": r["strength"], "missed": r["missed"], "message": r["message"]}
                    for r in mine if not _truthy(r["meets_targets"]) and _truthy(r["detected"]) and not names_cause(r)]
-        methods[method] = {"breaking_points": breaking, "silent": silent, "told_not_named": unnamed, "false_alarms": false_alarms,
+        methods[method] = {"missed_clean": sorted(missed_clean), "breaking_points": breaking, "silent": silent, "told_not_named": unnamed, "false_alarms": false_alarms,
                            "cells": len(mine), "meeting_targets": sum(_truthy(r["meets_targets"]) for r in mine)}
     return {"methods": methods, "silent_cells": sum(len(m["silent"]) for m in methods.values()),
             "told_not_named_cells": sum(len(m["told_not_named"]) for m in methods.values()),
@@ -458,8 +459,9 @@ def stability(
     result = run_stability(out, quick=quick, seed=seed, device=device)
     for method, entry in result.summary["methods"].items():
         points = ", ".join(f"{c} {b['first_miss']}" for c, b in entry["breaking_points"].items() if b["first_miss"] is not None)
-        typer.echo(f"{method}: {entry['meeting_targets']}/{entry['cells']} cells meet the targets; first misses: {points or 'none'}; "
-                   f"silent failures: {len(entry['silent'])}")
+        clean = f" (clean: misses {', '.join(entry['missed_clean'])})" if entry["missed_clean"] else ""
+        typer.echo(f"{method}: {entry['meeting_targets']}/{entry['cells']} cells meet the targets{clean}; breaks at: {points or 'nothing tried'}; "
+                   f"silent failures: {len(entry['silent'])}, told but not named: {len(entry['told_not_named'])}")
     typer.echo(f"table: {result.table}\nsummary: {result.summary_path}")
     for path in result.charts:
         typer.echo(f"chart: {path}")

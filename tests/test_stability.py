@@ -80,11 +80,17 @@ def test_the_summary_finds_breaking_points_silent_cells_and_false_alarms():
     # told, but in words that do not name the condition
     assert [(s["condition"], s["strength"]) for s in summary["told_not_named"]] == [("certificate 430 nm", "-0.05")]
     assert summary["meeting_targets"] == 4 and summary["cells"] == 8
-    # a method that misses a target on the clean session breaks there, whatever the condition
+    # a method that misses a target on the clean session breaks where it misses another one
     plan.methods = ["auto", "gn-hom"]
-    rows += [{**r, "method": "gn-hom", "meets_targets": "False" if r["condition"] == "clean" else r["meets_targets"]} for r in rows]
-    other = summarise(rows, plan)["methods"]["gn-hom"]["breaking_points"]
-    assert other["noise"]["first_miss"] == "clean" and other["certificate 430 nm"]["first_miss"] == "clean"
+    others = [{**r, "method": "gn-hom"} for r in rows]
+    for r in others:
+        r["missed"] = {"clean": "C_hd", "2": "C_hd", "4": "C_hd", "8": "C_hd C_m"}.get(r["strength"], r["missed"]) if r["condition"] in ("clean", "noise") else r["missed"]
+        r["meets_targets"] = str(not r["missed"])
+    others[0]["missed"] = "C_hd"
+    other = summarise(rows + others, plan)["methods"]["gn-hom"]
+    assert other["missed_clean"] == ["C_hd"]
+    assert other["breaking_points"]["noise"]["first_miss"] == 8.0  # 2 and 4 miss only what clean misses
+    assert other["breaking_points"]["certificate 430 nm"]["first_miss"] == -0.05
 
 
 def test_the_fits_residual_and_precision_warnings_fire_beyond_their_limits_only():
