@@ -1,6 +1,7 @@
 """The stability matrix's heat maps (``skinlayers.stability``): one PNG per method, a row per condition, a
 cell per strength, coloured by how far the cell is from its worst target (1: at the target) and marked
-met, detected (told) or silent (missed and nothing said)."""
+met, told (a warning naming the condition), told, not why (a warning naming another cause) or SILENT
+(a target missed and nothing said)."""
 
 from __future__ import annotations
 
@@ -34,6 +35,7 @@ def draw_heat_maps(rows: list[dict], plan, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt  # noqa: PLC0415
     from matplotlib.colors import LogNorm  # noqa: PLC0415
 
+    from .stability import names_cause  # noqa: PLC0415
     from .sweep import cell_text  # noqa: PLC0415
 
     paths = []
@@ -50,14 +52,14 @@ def draw_heat_maps(rows: list[dict], plan, out: Path) -> list[Path]:
                     continue
                 grid[i][j] = worst_ratio(row)
                 met, told = str(row["meets_targets"]) == "True", str(row["detected"]) == "True"
-                mark = "met" if met else ("told" if told else "SILENT")
+                mark = "met" if met else ("told" if told and names_cause(row) else "told, not why" if told else "SILENT")
                 ax.text(j, i, f"{s}\n{mark}" if s != "" else mark, ha="center", va="center", fontsize=7,
                         fontweight="bold" if mark == "SILENT" else "normal")
         image = ax.imshow(grid, cmap="RdYlGn_r", norm=LogNorm(*RATIO_RANGE), aspect="auto")
         ax.set_yticks(range(len(conditions)), conditions, fontsize=8)
         ax.set_xticks(range(width), [str(j + 1) for j in range(width)], fontsize=8)
         ax.set_xlabel("strength (in the sweep's order; the value is in the cell)")
-        ax.set_title(f"{method}: worst error over its target per cell (met · told · SILENT)", fontsize=9)
+        ax.set_title(f"{method}: worst ratio to a target per cell (met · told · told, not why · SILENT)", fontsize=9)
         fig.colorbar(image, ax=ax, label="worst ratio to a target")
         fig.tight_layout()
         path = out / f"stability_{method}.png"
