@@ -193,3 +193,12 @@ def test_a_rerun_measures_only_the_missing_cells(small, tmp_path):
     measured = [line for line in said if line.startswith("[")]
     assert len(measured) == 1 and "noise, 0.25" in measured[0]
     assert len(list(csv.DictReader(result.table.open()))) == 6
+
+
+def test_bad_input_ends_in_one_line(run_cli, tmp_path):
+    """A folder holding another analysis's table, a bad device: one line on stderr, status 1."""
+    (tmp_path / "stability.csv").write_text("a,b\n1,2\n")
+    for args, words in ((["-o", str(tmp_path)], "columns"), (["--device", "tpu", "-o", str(tmp_path / "n")], "--device")):
+        code, out, err = run_cli("stability", "--quick", *args)
+        assert code == 1 and err.startswith("error:") and words in err and "Traceback" not in err, (args, err)
+        assert len(err.strip().splitlines()) == 1
