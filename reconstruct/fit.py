@@ -552,7 +552,7 @@ def _hairs(cube: Cube, checks: DataChecks) -> HairFinding | None:
     noise = _cube_noise(cube.reflectance, checks.fit_mask)
     if noise is None:
         return None
-    return find_hairs(cube.reflectance, cube.wavelength_nm.tolist(), checks.fit_mask, cube.mm_per_pixel, noise)
+    return find_hairs(cube.reflectance, cube.wavelength_nm.tolist(), checks.fit_mask, cube.mm_per_pixel, noise, checks.bands_used)
 
 
 def _cube_noise(target: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor | None:

@@ -38,6 +38,9 @@ CLOSING_MM = 0.1
 #: A pixel is a hair's where the top-hat exceeds this many noise σ. Measured on simulated 32² sessions
 #: (docs/stability.md): the top-hat of hairless skin reaches 5.4σ at its 99.9th percentile.
 HAIR_Z = 6.0
+#: The noise σ of the red bands' mean log reflectance is taken as at least this: a cube smoother than a
+#: camera makes (a render without noise) would otherwise call every faint line of the skin a hair.
+MIN_SIGMA = 2e-3
 #: A hair's pixel is grey: the rest of the spectrum's top-hat at most this many times the red one's.
 #: Measured at 32² (docs/stability.md): hair pixels 0.4 (a hair's loss spreads wider in red light), the
 #: freckles of Table 2's darkest skin (V exterior) 1.7.
@@ -70,23 +73,25 @@ class HairFinding:
 
 
 def find_hairs(reflectance: torch.Tensor, wavelength_nm: list[float], mask: torch.Tensor, mm_per_pixel: float,
-               noise: torch.Tensor) -> HairFinding:
-    """The hairs in a cube ``(L, H, W)`` over ``mask``, with each band's noise σ ``(L,)`` (reflectance units)."""
+               noise: torch.Tensor, bands_used: torch.Tensor | None = None) -> HairFinding:
+    """The hairs in a cube ``(L, H, W)`` over ``mask``, with each band's noise σ ``(L,)`` (reflectance units);
+    bands not in ``bands_used`` ``(L,)`` (dead ones) are not looked at."""
     h, w = mask.shape
     none = HairFinding(torch.zeros(h, w, dtype=torch.bool), torch.zeros(h, w, dtype=torch.bool), 0)
-    red = [j for j, nm in enumerate(wavelength_nm) if nm >= RED_FROM_NM]
+    used = [True] * len(wavelength_nm) if bands_used is None else [bool(u) for u in bands_used.tolist()]
+    red = [j for j, nm in enumerate(wavelength_nm) if nm >= RED_FROM_NM and used[j]]
     inside = mask.cpu().numpy().astype(bool)
     if not red or inside.sum() < 16:
         return none
     r = reflectance[red].double().cpu().clamp_min(1e-6)
     level = r[:, torch.as_tensor(inside)].mean(1)  # (R,)
     # σ of the mean of the bands' logs: each band's σ relative to its level, averaged in quadrature
-    sigma = float((noise[red].double().cpu() / level).pow(2).sum().sqrt() / len(red))
+    sigma = max(float((noise[red].double().cpu() / level).pow(2).sum().sqrt() / len(red)), MIN_SIGMA)
     half = max(1, round(CLOSING_MM / mm_per_pixel))
     top_hat = _top_hat(reflectance[red], inside, half)
     # grey: no other part of the spectrum darkened much more (a freckle's melanin darkens the blue, a vein's
     # blood the green, several times the red)
-    others = [j for j in range(len(wavelength_nm)) if j not in red]
+    others = [j for j in range(len(wavelength_nm)) if j not in red and used[j]]
     grey = _top_hat(reflectance[others], inside, half) <= GREY_RATIO * top_hat if others else np.ones_like(inside)
     # the window's edge is a thin dark line too (its light leaks under the tape): searched only inside it
     search = ndimage.binary_erosion(inside, structure=np.ones((3, 3)), iterations=half + 1)

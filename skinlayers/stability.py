@@ -76,7 +76,7 @@ CONDITIONS: dict[str, Condition] = {
     "misregistration": Condition("cube", (0.5, 1.0, 2.0, 3.0), (1.0, 3.0), "cube px between neighbouring bands", cause=("misregistration",)),
     "motion blur": Condition("cube", (3, 5, 9), (5,), "px, one band (550 nm)", cause=("motion",)),
     "dead band": Condition("cube", (550,), (550,), "nm", cause=("left out",)),
-    "skin type": Condition("capture", ("I interior", "IV exterior", "V exterior"), ("V exterior",), "DWRR08 Table 2 row", cause=("noise-limited", "bound")),
+    "skin type": Condition("capture", ("I interior", "IV exterior", "V exterior"), ("V exterior",), "DWRR08 Table 2 row", cause=("noise-limited",)),
     "hairs": Condition("capture", (5, 20), (5,), "hairs in the view", cause=("hair",)),
     "flash drift": Condition("capture", (0.1, 0.2), (0.2,), "frame-to-frame flash jitter (relative)", cause=("flash",)),
     "physics": Condition("physics", (41, 42, 43), (41,), "transport session (Monte Carlo) seed", cause=("physics",)),
@@ -98,10 +98,10 @@ BAND_OF = {"motion blur": 550.0}
 #: The base session: a diffusion session (the model at twice the fit's resolution) at this seed, not one
 #: the defaults were tuned on (the demo uses 0–2, the tradeoff 61–63).
 BASE_SEED = 71
-COLUMNS = ("condition", "strength", "method", "unit", *(f"error_{m}" for m in MAPS), "residual_over_noise", "sigma_cover",
+COLUMNS = ("condition", "strength", "method", "seed", "size_px", "unit", *(f"error_{m}" for m in MAPS), "residual_over_noise", "sigma_cover",
            "hair_flagged", "sigma_cover_flagged",
            "iterations", "capped", "meets_targets", "missed", "detected", "message", "wall_s")
-KEY = ("condition", "strength", "method")
+KEY = ("condition", "strength", "method", "seed", "size_px")
 
 
 @dataclass
@@ -152,9 +152,10 @@ def run_stability(out: Path, *, quick: bool = False, seed: int = 0, device: str 
 
 def _cases(plan: StabilityPlan) -> list[dict]:
     """Each method's clean cell first, then the conditions."""
-    cases = [{"condition": "clean", "strength": "", "method": m, "unit": ""} for m in plan.methods]
+    base = {"seed": plan.seed, "size_px": plan.size_px}
+    cases = [{"condition": "clean", "strength": "", "method": m, **base, "unit": ""} for m in plan.methods]
     for name, strengths in plan.conditions.items():
-        cases += [{"condition": name, "strength": s, "method": m, "unit": CONDITIONS[name].unit}
+        cases += [{"condition": name, "strength": s, "method": m, **base, "unit": CONDITIONS[name].unit}
                   for s in strengths for m in plan.methods]
     return cases
 
@@ -243,6 +244,8 @@ class _Runner:
 
     def measure(self, case: dict) -> dict:
         from .formats.cube import read_cube  # noqa: PLC0415
+        from .formats.errors import InputError  # noqa: PLC0415
+        from .formats.resources import ResourceError  # noqa: PLC0415
         from .reconstruct import fit_cube, load_fit_settings  # noqa: PLC0415
 
         condition, strength, method = case["condition"], case["strength"], case["method"]
@@ -261,7 +264,9 @@ class _Runner:
         start = time.perf_counter()
         try:
             fit = fit_cube(cube, settings, device=self.device)
-        except ValueError as error:  # the data refused, with its reason: the user is told
+        except ResourceError:
+            raise  # the machine's limit, not the data's: nothing to record
+        except InputError as error:  # the data refused, with its reason: the user is told
             return {"detected": True, "message": f"refused: {error}", "meets_targets": False, "missed": "refused",
                     "wall_s": time.perf_counter() - start}
         wall = time.perf_counter() - start
@@ -393,6 +398,7 @@ def summarise(rows: list[dict], plan: StabilityPlan) -> dict:
     strength nearest the clean data that misses a target the clean session meets); the silent cells (a
     target missed, nothing said), those told in words that do not name their condition, the false alarms."""
     methods = {}
+    rows = [r for r in rows if (str(r["seed"]), str(r["size_px"])) == (cell_text(plan.seed), cell_text(plan.size_px))]
     for method in plan.methods:
         mine = [r for r in rows if r["method"] == method]
         breaking = {}
@@ -456,6 +462,8 @@ def stability(
         raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
     if device == "auto":
         device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device here; use cpu or auto")
     result = run_stability(out, quick=quick, seed=seed, device=device)
     for method, entry in result.summary["methods"].items():
         points = ", ".join(f"{c} {b['first_miss']}" for c, b in entry["breaking_points"].items() if b["first_miss"] is not None)

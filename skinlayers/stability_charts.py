@@ -16,13 +16,17 @@ RATIO_RANGE = (0.1, 10.0)
 
 def worst_ratio(row: dict) -> float:
     """The cell's largest ratio to a target: each map's error over its target, the residual over its
-    limit, the σ coverage wanted over the coverage had (1: exactly at the worst target)."""
+    limit, the σ coverage wanted over the coverage had, on the scored pixels and on the hair-flagged ones
+    (1: exactly at the worst target)."""
     from .stability import RESIDUAL_AT_NOISE, SIGMA_COVER, TARGETS  # noqa: PLC0415
 
     try:
         ratios = [float(row[f"error_{m}"]) / t for m, t in TARGETS.items()]
         ratios.append(float(row["residual_over_noise"]) / RESIDUAL_AT_NOISE)
         ratios.append(SIGMA_COVER / max(float(row["sigma_cover"]), 1e-3))
+        flagged = float(row.get("sigma_cover_flagged") or "nan")
+        if math.isfinite(flagged):
+            ratios.append(SIGMA_COVER / max(flagged, 1e-3))
     except (TypeError, ValueError, KeyError):
         return math.nan  # a refused cell has no maps
     return max(ratios)

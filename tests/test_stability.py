@@ -66,11 +66,12 @@ def test_a_cells_verdict_names_each_missed_target():
 
 def test_the_summary_finds_breaking_points_silent_cells_and_false_alarms():
     plan = StabilityPlan({"noise": (0.25, 2.0, 4.0, 8.0), "certificate 430 nm": (-0.10, -0.05, 0.01)}, ["auto"])
-    rows = [{"condition": "clean", "strength": "", "method": "auto", "meets_targets": "True", "detected": "False", "missed": "", "message": ""}]
+    at = {"seed": str(plan.seed), "size_px": str(plan.size_px)}
+    rows = [{"condition": "clean", "strength": "", "method": "auto", **at, "meets_targets": "True", "detected": "False", "missed": "", "message": ""}]
     cells = {("noise", "0.25"): (True, False), ("noise", "2"): (True, True), ("noise", "4"): (False, True), ("noise", "8"): (False, False),
              ("certificate 430 nm", "-0.1"): (False, False), ("certificate 430 nm", "-0.05"): (False, True), ("certificate 430 nm", "0.01"): (True, False)}
     for (c, s), (met, told) in cells.items():
-        rows.append({"condition": c, "strength": s, "method": "auto", "meets_targets": str(met), "detected": str(told),
+        rows.append({"condition": c, "strength": s, "method": "auto", **at, "meets_targets": str(met), "detected": str(told),
                      "missed": "" if met else "C_m", "message": ("noise-limited maps" if c == "noise" else "a warning") if told else ""})
     summary = summarise(rows, plan)["methods"]["auto"]
     assert summary["breaking_points"]["noise"]["first_miss"] == 4.0
@@ -193,6 +194,22 @@ def test_a_rerun_measures_only_the_missing_cells(small, tmp_path):
     measured = [line for line in said if line.startswith("[")]
     assert len(measured) == 1 and "noise, 0.25" in measured[0]
     assert len(list(csv.DictReader(result.table.open()))) == 6
+
+
+def test_another_seed_in_the_same_folder_is_measured_not_taken_from_the_table(small, tmp_path):
+    out, _, _ = small
+    shutil.copytree(out, tmp_path / "again")
+    said: list[str] = []
+    run_stability(tmp_path / "again", plan=StabilityPlan({"dead band": (550,)}, ["gn-hom"], 16, seed=6), say=said.append)
+    assert len([line for line in said if line.startswith("[")]) == 2  # clean and the dead band, at seed 6
+
+
+def test_a_cell_coloured_by_its_worst_target_hair_flagged_pixels_included():
+    from skinlayers.stability_charts import worst_ratio
+
+    row = _row(sigma_cover_flagged="")
+    assert worst_ratio(row) == pytest.approx(max(0.5, 1.0 / RESIDUAL_AT_NOISE, SIGMA_COVER / 0.9))
+    assert worst_ratio(_row(sigma_cover_flagged=SIGMA_COVER / 2)) == pytest.approx(2.0)
 
 
 def test_bad_input_ends_in_one_line(run_cli, tmp_path):

@@ -13,8 +13,8 @@ SIDE = 128
 NOISE = 0.004  # reflectance units, each band
 
 
-def _skin(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Skin ``(L, H, W)`` with two freckles (0.2 and 0.35 mm radius) and a vein (0.3 mm radius), noise added."""
+def _skin(seed: int, noise: float = NOISE) -> tuple[torch.Tensor, torch.Tensor]:
+    """Skin ``(L, H, W)`` with two freckles (0.2 and 0.35 mm radius) and a vein (0.3 mm radius), ``noise`` added."""
     gen = torch.Generator().manual_seed(seed)
     y, x = torch.meshgrid(torch.arange(SIDE) * MM_PER_PIXEL, torch.arange(SIDE) * MM_PER_PIXEL, indexing="ij")
     base = torch.linspace(0.25, 0.55, len(WAVELENGTHS_NM))[:, None, None].expand(-1, SIDE, SIDE).clone()
@@ -24,8 +24,8 @@ def _skin(seed: int) -> tuple[torch.Tensor, torch.Tensor]:
         base = base * (1.0 - 0.35 * blue_weight * freckle)
     vein = ((y - 3.0).abs() < 0.3).float()
     base = base * (1.0 - 0.12 * torch.linspace(0.2, 1.0, len(WAVELENGTHS_NM))[:, None, None] * vein)
-    noisy = base + NOISE * torch.randn(base.shape, generator=gen)
-    return noisy, torch.full((len(WAVELENGTHS_NM),), NOISE)
+    noisy = base + noise * torch.randn(base.shape, generator=gen)
+    return noisy, torch.full((len(WAVELENGTHS_NM),), noise)
 
 
 def test_a_thin_dark_line_is_found_and_flagged_with_its_halo():
@@ -69,3 +69,20 @@ def test_sigma_is_widened_by_the_measured_factors_on_and_away_from_hairs():
     for k, name in enumerate(PARAMETER_NAMES):
         assert factors[k].tolist() == [HAIR_SIGMA_ON[name], HAIR_SIGMA_AWAY[name], HAIR_SIGMA_ON[name]]
         assert HAIR_SIGMA_ON[name] >= 1.0 and HAIR_SIGMA_AWAY[name] >= 1.0  # widened, never narrowed
+
+
+def test_a_cube_without_noise_has_no_hairs_and_a_dead_red_band_is_not_looked_at():
+    cube, _ = _skin(0)
+    clean, _ = _skin(0, noise=0.0)
+    clean[:, 30:90, 40] *= 0.995  # a fine crease, 0.5% darker
+    mask = torch.ones(SIDE, SIDE, dtype=torch.bool)
+    # band_noise's floor (1e-9) as the noise: a faint line of the skin must not pass for a hair
+    assert find_hairs(clean, WAVELENGTHS_NM, mask, MM_PER_PIXEL, torch.full((9,), 1e-9)).count == 0
+    lined = cube.clone()
+    lined[:, 20:100, 64] *= 0.6
+    lined[8] = 1e-4 + 0.05 * torch.rand(SIDE, SIDE, generator=torch.Generator().manual_seed(1))  # 670 nm dead and noisy
+    noise = torch.full((9,), NOISE)
+    noise[8] = 0.05
+    used = torch.ones(9, dtype=torch.bool)
+    used[8] = False
+    assert find_hairs(lined, WAVELENGTHS_NM, mask, MM_PER_PIXEL, noise, used).count == 1
