@@ -37,7 +37,7 @@ from pathlib import Path
 import torch
 import typer
 
-from .sweep import SweepTable, cell_text
+from .sweep import SweepTable, analysis_device, cell_text, echo_outputs
 from .tradeoff import TARGETS, SessionSpec, make_session
 
 __all__ = ["COLUMNS", "CONDITIONS", "METHODS", "StabilityPlan", "StabilityResult", "cell_verdict", "make_plan", "run_stability"]
@@ -456,24 +456,14 @@ def stability(
 
     Example: skinlayers stability --quick -o stability   (then open stability/stability_auto.png)
     """
-    from .formats.errors import InputError  # noqa: PLC0415
-
-    if device not in ("cpu", "cuda", "auto"):
-        raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: no CUDA device here; use cpu or auto")
+    device = analysis_device(device)
     result = run_stability(out, quick=quick, seed=seed, device=device)
     for method, entry in result.summary["methods"].items():
         points = ", ".join(f"{c} {b['first_miss']}" for c, b in entry["breaking_points"].items() if b["first_miss"] is not None)
         clean = f" (clean: misses {', '.join(entry['missed_clean'])})" if entry["missed_clean"] else ""
         typer.echo(f"{method}: {entry['meeting_targets']}/{entry['cells']} cells meet the targets{clean}; breaks at: {points or 'nothing tried'}; "
                    f"silent failures: {len(entry['silent'])}, told but not named: {len(entry['told_not_named'])}")
-    typer.echo(f"table: {result.table}\nsummary: {result.summary_path}")
-    for path in result.charts:
-        typer.echo(f"chart: {path}")
-    typer.echo(f"{result.seconds:.0f} s")
+    echo_outputs(result.table, result.summary_path, result.charts, result.seconds)
 
 
 def register(app: typer.Typer) -> None:

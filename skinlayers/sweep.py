@@ -23,7 +23,7 @@ from typing import Callable, Iterable, Sequence
 from .formats.errors import InputError
 from .formats.files import atomic_write
 
-__all__ = ["PeakMemory", "SweepTable", "cell_text", "pareto_front", "time_to_front"]
+__all__ = ["PeakMemory", "SweepTable", "analysis_device", "cell_text", "echo_outputs", "pareto_front", "time_to_front"]
 
 #: How often the peak-memory sampler reads the resident set (s).
 SAMPLE_S = 0.005
@@ -227,3 +227,28 @@ def time_to_front(cost: Sequence[float], error: Sequence[float], i: int) -> floa
     as fast; 1.1: 10% slower than the front at its error)."""
     fastest = min(c for c, e in zip(cost, error) if math.isfinite(c) and math.isfinite(e) and e <= error[i])
     return cost[i] / fastest
+
+
+# -- the commands' shared rules -----------------------------------------------------------------------------
+
+
+def analysis_device(device: str) -> str:
+    """An analysis command's ``--device``: cpu, cuda or auto (CUDA when there is one); anything else, or cuda
+    where there is none, is the user's error (``InputError``)."""
+    import torch  # noqa: PLC0415
+
+    if device not in ("cpu", "cuda", "auto"):
+        raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device here; use cpu or auto")
+    return device
+
+
+def echo_outputs(table: Path, summary: Path, charts: Sequence[Path], seconds: float) -> None:
+    """Where an analysis wrote its table, summary and charts, and how long it took (stdout)."""
+    print(f"table: {table}\nsummary: {summary}")
+    for path in charts:
+        print(f"chart: {path}")
+    print(f"{seconds:.0f} s")

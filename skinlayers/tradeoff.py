@@ -33,7 +33,7 @@ import typer
 
 from .reconstruct.checks import MAP_TARGETS
 from .reconstruct.first_order import FIRST_ORDER_CAP
-from .sweep import PeakMemory, SweepTable, pareto_front, time_to_front
+from .sweep import PeakMemory, SweepTable, analysis_device, echo_outputs, pareto_front, time_to_front
 
 __all__ = ["COLUMNS", "FORWARD_CONFIGS", "INVERSE_CONFIGS", "TARGETS", "SessionSpec", "TradeoffPlan", "TradeoffResult",
            "make_plan", "run_tradeoff"]
@@ -597,10 +597,7 @@ def tradeoff(
     """
     from .formats.errors import InputError  # noqa: PLC0415
 
-    if device not in ("cpu", "cuda", "auto"):
-        raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = analysis_device(device)
     if cube is not None and not cube.is_file():
         raise InputError(f"--cube {cube}: no such file")
     result = run_tradeoff(out, quick=quick, cube=cube, device=device, seed=seed)
@@ -610,10 +607,7 @@ def tradeoff(
             typer.echo(f"{name}: default {d['wall_s']:.3g} s, error {d['error']}, on the front: {group['default_on_front']}, "
                        f"{d['time_to_front']:.2f}× the front's time at its error"
                        + (f"; the paper's scheme {group['paper_over_default_time']:.1f}× the default's time" if "paper_over_default_time" in group else ""))
-    typer.echo(f"table: {result.table}\nsummary: {result.summary_path}")
-    for path in result.charts:
-        typer.echo(f"chart: {path}")
-    typer.echo(f"{result.seconds:.0f} s")
+    echo_outputs(result.table, result.summary_path, result.charts, result.seconds)
 
 
 def register(app: typer.Typer) -> None:

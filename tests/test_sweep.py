@@ -87,3 +87,16 @@ def test_peak_memory_sees_a_block_that_allocates():
         time.sleep(0.1)
         block.close()
     assert big.peak_mb > 40.0 and big.peak_mb > small.peak_mb + 30.0
+
+
+def test_an_analysis_device_is_cpu_cuda_or_auto_and_cuda_only_where_there_is_one():
+    from skinlayers.formats.errors import InputError
+    from skinlayers.sweep import analysis_device
+
+    assert analysis_device("cpu") == "cpu"
+    assert analysis_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(InputError, match="expected cpu, cuda or auto"):
+        analysis_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(InputError, match="no CUDA device"):
+            analysis_device("cuda")
