@@ -32,12 +32,12 @@ import json
 import math
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 import torch
 import typer
 
-from .sweep import SweepTable, analysis_device, cell_text, echo_outputs
+from .sweep import AnalysisResult, SweepTable, analysis_device, cell_text, echo_outputs
 from .tradeoff import TARGETS, SessionSpec, make_session
 
 __all__ = ["COLUMNS", "CONDITIONS", "METHODS", "StabilityPlan", "StabilityResult", "cell_verdict", "make_plan", "run_stability"]
@@ -115,13 +115,8 @@ class StabilityPlan:
     quick: bool = False
 
 
-@dataclass
-class StabilityResult:
-    table: Path
-    summary_path: Path
-    charts: list[Path]
-    summary: dict = field(default_factory=dict)
-    seconds: float = 0.0
+#: The files written and the summary (``stability.json``'s content).
+StabilityResult = AnalysisResult
 
 
 def make_plan(quick: bool = False, seed: int = 0) -> StabilityPlan:

@@ -16,14 +16,14 @@ import resource
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
 from .formats.errors import InputError
 from .formats.files import atomic_write
 
-__all__ = ["PeakMemory", "SweepTable", "analysis_device", "cell_text", "echo_outputs", "pareto_front", "time_to_front"]
+__all__ = ["AnalysisResult", "PeakMemory", "SweepTable", "analysis_device", "cell_text", "echo_outputs", "pareto_front", "time_to_front"]
 
 #: How often the peak-memory sampler reads the resident set (s).
 SAMPLE_S = 0.005
@@ -252,3 +252,14 @@ def echo_outputs(table: Path, summary: Path, charts: Sequence[Path], seconds: fl
     for path in charts:
         print(f"chart: {path}")
     print(f"{seconds:.0f} s")
+
+
+@dataclass
+class AnalysisResult:
+    """What an analysis wrote (its table, its summary file, its charts), the summary itself and its time."""
+
+    table: Path
+    summary_path: Path
+    charts: list[Path]
+    summary: dict = field(default_factory=dict)
+    seconds: float = 0.0

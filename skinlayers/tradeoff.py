@@ -33,7 +33,7 @@ import typer
 
 from .reconstruct.checks import MAP_TARGETS
 from .reconstruct.first_order import FIRST_ORDER_CAP
-from .sweep import PeakMemory, SweepTable, analysis_device, echo_outputs, pareto_front, time_to_front
+from .sweep import AnalysisResult, PeakMemory, SweepTable, analysis_device, echo_outputs, pareto_front, time_to_front
 
 __all__ = ["COLUMNS", "FORWARD_CONFIGS", "INVERSE_CONFIGS", "TARGETS", "SessionSpec", "TradeoffPlan", "TradeoffResult",
            "make_plan", "run_tradeoff"]
@@ -159,15 +159,8 @@ class TradeoffPlan:
     only_on: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
 
-@dataclass
-class TradeoffResult:
-    """The files written and the summary (``tradeoff.json``'s content)."""
-
-    table: Path
-    summary_path: Path
-    charts: list[Path]
-    summary: dict = field(default_factory=dict)
-    seconds: float = 0.0
+#: The files written and the summary (``tradeoff.json``'s content).
+TradeoffResult = AnalysisResult
 
 
 def make_plan(quick: bool = False, seed: int = 0, cube: Path | None = None) -> TradeoffPlan:
