@@ -234,6 +234,17 @@ class ForwardChoice:
         return (f"the renderer differs from the homogeneous fit by {last.crosstalk_rms:.2f} of the noise at {where}, "
                 f"most at {last.worst_band_nm:g} nm (limit {last.limit:g}): the scene needs the heterogeneous renderer")
 
+    def model_notes(self) -> list[str]:
+        """A warning where the homogeneous model was imposed (``forward: homogeneous``) and the renderer,
+        at its maps, differs from it by more than the check's limit: the light the skin carries between
+        pixels is left out and the maps take it."""
+        if self.setting != "homogeneous" or not self.checks or self.checks[-1].passed:
+            return []
+        last = self.checks[-1]
+        return [f"homogeneous model on skin that varies within the light's reach: the renderer differs from it by "
+                f"{last.crosstalk_rms:.1f}× the noise, most at {last.worst_band_nm:g} nm (limit {last.limit:g}); the maps "
+                "are biased where the skin changes; fit with forward: auto (or heterogeneous)"]
+
     def as_dict(self) -> dict:
         return {"setting": self.setting, "chosen": self.chosen, "reason": self.reason,
                 "checks": [{**asdict(c), "passed": c.passed} for c in self.checks],

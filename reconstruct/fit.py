@@ -31,7 +31,8 @@ from ..model.maps import SkinMaps
 from ..formats.resources import require_memory
 from ..model.renderer import SkinRenderer, render_bytes
 from .absorbers import AbsorberFit, candidate_rows, fit_grey_absorbance
-from .checks import DataChecks, band_bias, band_bias_notes, check_cube, flag_value, precision_notes, residual_notes
+from .checks import (DataChecks, band_bias, band_bias_notes, check_cube, flag_value, precision_notes, residual_notes,
+                     smooth_band_notes)
 from .fidelity import PATCH_MM, ForwardChoice, crosstalk_check, spatial_structure, uniform_light_factor, window_light_factor
 from .gauss_newton import curvature_and_columns, level_step
 from .grid_choice import band_noise, choose_map_grids
@@ -274,6 +275,8 @@ def fit_cube(
         x, log_scale = extend(result.x, problem.index), result.log_scale
     say(FitEvent("final", len(levels) - 1, len(levels), pixels=pixels))
     renderer_fit = forward is None or forward.chosen == "heterogeneous"
+    if forward is not None:
+        checks.warn(forward.model_notes())
     out = _finish(problem, result, x, log_scale, checks, settings, cube.mm_per_pixel, renderer_fit, hairs)
     return MapFit(
         **out, checks=checks, wavelength_nm=wl, view_angle_deg=view, view_angle_source=view_source, band_fwhm_nm=fwhm,
@@ -408,7 +411,17 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
         hom = level_problem(levels[i], cells, F.interpolate(factor[None], size=levels[i].shape, mode="area")[0])
         result = fit_level(i, hom, x, log_scale, "homogeneous")
         x, log_scale = extend(result.x, hom.index), result.log_scale
-    evaluation = level_problem(levels[last], cells).evaluate(x, log_scale)  # the residual, flags and σ are the renderer's
+    try:
+        # the residual, flags and σ are the renderer's; with the homogeneous model imposed, the same render
+        # tells how far that model is from it at these maps (the cross-talk it leaves out: a warning)
+        noise = noise_at(levels[last]) if setting == "homogeneous" else None
+    except ValueError:
+        noise = None
+    if noise is not None:
+        found, evaluation = crosstalk_check(last, level_problem(levels[last], cells), hom, x, log_scale, noise)
+        choice.checks.append(found)
+    else:
+        evaluation = level_problem(levels[last], cells).evaluate(x, log_scale)
     choice.homogeneous_wall_s = time.perf_counter() - wall0
     return OptimResult(x, log_scale, evaluation, result.iterations, result.converged, result.history), choice, cells
 
@@ -523,6 +536,9 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     noise = _cube_noise(problem.level.target, seen)
     ratio = _residual_over_noise(residual, used, seen, noise)
     checks.warn(residual_notes(ratio))
+    if noise is not None:
+        level = problem.level.target[:, seen].double().median(dim=1).values.clamp_min(1e-12)
+        checks.warn(smooth_band_notes((noise.double() / level).tolist(), problem.wavelength_nm.tolist(), used.tolist()))
     if hairs is not None:
         flags[hairs.flagged.reshape(-1).to(x.device)] |= flag_value("hair")
         checks.warn(hair_notes(hairs, int((problem.mask | hairs.flagged.to(x.device)).sum())))

@@ -409,8 +409,11 @@ def summarise(rows: list[dict], plan: StabilityPlan) -> dict:
                   for r in mine if not _truthy(r["meets_targets"]) and not _truthy(r["detected"])]
         false_alarms = [{"condition": r["condition"], "strength": r["strength"], "message": r["message"]}
                         for r in mine if _truthy(r["meets_targets"]) and _truthy(r["detected"])]
+        # a cell missing only what the clean session misses fails for the method's own reason (told on the clean
+        # session); one missing more must name its condition
         unnamed = [{"condition": r["condition"], "strength": r["strength"], "missed": r["missed"], "message": r["message"]}
-                   for r in mine if not _truthy(r["meets_targets"]) and _truthy(r["detected"]) and not names_cause(r)]
+                   for r in mine if not _truthy(r["meets_targets"]) and _truthy(r["detected"]) and not names_cause(r)
+                   and set(str(r["missed"]).split()) - missed_clean]
         methods[method] = {"missed_clean": sorted(missed_clean), "breaking_points": breaking, "silent": silent, "told_not_named": unnamed, "false_alarms": false_alarms,
                            "cells": len(mine), "meeting_targets": sum(_truthy(r["meets_targets"]) for r in mine)}
     return {"methods": methods, "silent_cells": sum(len(m["silent"]) for m in methods.values()),

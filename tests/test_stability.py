@@ -15,7 +15,8 @@ import torch
 from skinlayers.formats.cube import Cube, CubeHeader
 from skinlayers.stability import (COLUMNS, CONDITIONS, METHODS, RESIDUAL_AT_NOISE, SIGMA_COVER, StabilityPlan, _perturb_cube,
                                   cell_verdict, make_plan, run_stability, summarise)
-from skinlayers.reconstruct.checks import MAP_TARGETS, RESIDUAL_NOISE_LIMIT, precision_notes, residual_notes
+from skinlayers.reconstruct.checks import (MAP_TARGETS, RESIDUAL_NOISE_LIMIT, SMOOTH_BAND_RATIO, precision_notes, residual_notes,
+                                          smooth_band_notes)
 
 WAVELENGTHS_NM = (430.0, 460.0, 490.0, 520.0, 550.0, 580.0, 610.0, 640.0, 670.0)
 
@@ -91,6 +92,11 @@ def test_the_summary_finds_breaking_points_silent_cells_and_false_alarms():
     assert other["missed_clean"] == ["C_hd"]
     assert other["breaking_points"]["noise"]["first_miss"] == 8.0  # 2 and 4 miss only what clean misses
     assert other["breaking_points"]["certificate 430 nm"]["first_miss"] == -0.05
+    # told in other words, missing only what the clean session misses: the method's own failure, not unnamed
+    assert ("noise", "4") not in [(s["condition"], s["strength"]) for s in other["told_not_named"]]
+    others[3]["message"] = "a warning"  # noise 4: told, not in the condition's words, C_hd only
+    unnamed = [(s["condition"], s["strength"]) for s in summarise(rows + others, plan)["methods"]["gn-hom"]["told_not_named"]]
+    assert ("noise", "4") not in unnamed and ("certificate 430 nm", "-0.05") in unnamed  # C_m beyond the clean miss
 
 
 def test_the_fits_residual_and_precision_warnings_fire_beyond_their_limits_only():
@@ -101,6 +107,20 @@ def test_the_fits_residual_and_precision_warnings_fire_beyond_their_limits_only(
     line = precision_notes({"C_m": 0.3, "beta_m": 0.14, "C_hd": 0.2, "C_he": 0.3})[0]
     assert "C_m 20%" in line and "C_hd 13%" in line and "beta_m" not in line and "C_he" not in line
     assert "beta_m 0.11" in precision_notes({"beta_m": 0.16})[0]
+
+
+def test_a_band_smoother_than_its_neighbours_is_named_and_only_it():
+    wl = list(WAVELENGTHS_NM)
+    clean = [8.6, 6.1, 5.1, 4.5, 5.2, 5.3, 5.7, 7.7, 16.6]  # a clean simulated cube's σ/reflectance (×1e-3)
+    assert smooth_band_notes(clean, wl, [True] * 9) == []
+    blurred = [*clean[:4], 1.0, *clean[5:]]
+    line = smooth_band_notes(blurred, wl, [True] * 9)[0]
+    assert "550 nm 0.20×" in line and "motion" in line and "520 nm" not in line
+    # an end band has one neighbour; a band left out is no neighbour
+    end = smooth_band_notes([*clean[:8], SMOOTH_BAND_RATIO * 0.9 * clean[7]], wl, [True] * 9)[0]
+    assert "670 nm 0.45×" in end
+    assert smooth_band_notes(blurred, wl, [True] * 4 + [False] + [True] * 4) == []
+    assert "580 nm" in smooth_band_notes([*clean[:4], 1e-4, 1.0, *clean[6:]], wl, [True] * 4 + [False] + [True] * 4)[0]
 
 
 def test_the_plans_name_known_conditions_and_methods():
