@@ -223,6 +223,18 @@ def test_another_seed_in_the_same_folder_is_measured_not_taken_from_the_table(sm
     assert len([line for line in said if line.startswith("[")]) == 2  # clean and the dead band, at seed 6
 
 
+def test_the_same_seed_gives_the_same_cells_twice(small, tmp_path):
+    """Seeded: the session simulated anew in another folder, fitted again, gives the same numbers."""
+    out, _, _ = small
+    result = run_stability(tmp_path, plan=StabilityPlan({"dead band": (550,)}, ["gn-hom"], 16, seed=5), say=lambda s: None)
+    again = {(r["condition"], r["strength"]): r for r in csv.DictReader(result.table.open())}
+    first = {(r["condition"], r["strength"]): r for r in csv.DictReader((out / "stability.csv").open())}
+    assert set(again) == {("clean", ""), ("dead band", "550")}
+    measured = [c for c in COLUMNS if c.startswith("error_") or c in ("residual_over_noise", "sigma_cover", "iterations", "message")]
+    for key, row in again.items():
+        assert {c: row[c] for c in measured} == {c: first[key][c] for c in measured}, key
+
+
 def test_a_cell_coloured_by_its_worst_target_hair_flagged_pixels_included():
     from skinlayers.stability_charts import worst_ratio
 
