@@ -31,7 +31,7 @@ import torch
 
 from ..model import N_PARAMS
 from .least_squares import LAMBDA0, LAMBDA_MAX, LAMBDA_MIN, block_factor, block_solve, next_damping, predicted_decrease
-from .problem import Evaluation, LevelProblem, OptimResult
+from .problem import Evaluation, HomogeneousProblem, LevelProblem, OptimResult
 from .schur import solve_split_step
 from .unknowns import X_LIMIT
 
@@ -185,7 +185,7 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
                 progress(it, ev.loss)
             # before any step is kept the start may be far (its shared nodes projected from noisy per-pixel
             # fits): let the damping grow further before giving up
-            if rejections >= (_REJECTIONS if len(history) > 1 else _FIRST_REJECTIONS) or float(step.max()) < settings.xtol:
+            if rejections >= _rejection_limit(problem, settings, kept=len(history) > 1) or float(step.max()) < settings.xtol:
                 converged = True  # no step of any damping lowers the loss: a (local) optimum of this model
                 break
     if jac is None:
@@ -193,6 +193,18 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
     # the shared unknowns' last decrement as a χ² decrease (σ² from the residual: 2·loss per element)
     shared = decrement / max(2.0 * ev.loss / max(ev.residual.numel(), 1), 1e-300) if it else 0.0
     return OptimResult(ev.x, ev.log_scale, ev, it, converged, history, step, jac.transpose(1, 2) @ jac, shared)
+
+
+def _rejection_limit(problem: LevelProblem, settings, kept: bool) -> int:
+    """Rejected steps in a row that end a pass. Before any step is kept the start may be far (its shared
+    nodes projected from noisy per-pixel fits): the damping may grow further. With the renderer, once a
+    step is kept, ``settings.renderer_retries`` + 1: a rejection there means the homogeneous curvature
+    no longer predicts the renderer's response, and each retry costs a render."""
+    if not kept:
+        return _FIRST_REJECTIONS
+    if isinstance(problem, HomogeneousProblem):
+        return _REJECTIONS
+    return settings.renderer_retries + 1
 
 
 def gn_exact(problem, x0, log_scale0, settings, progress=None) -> OptimResult:
