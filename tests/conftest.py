@@ -5,10 +5,30 @@ is importable as ``transport_reference`` (the test folders are not packages)."""
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
 import pytest
+
+#: Under pytest-xdist each worker takes one core: one torch thread apiece (set before torch starts its
+#: pool, and inherited by the commands the tests run), else the workers' threads oversubscribe the cores.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+#: The default selection (pyproject's addopts); any other ``-m`` (benchmarks, slow checks) runs in one
+#: process: benchmarks time themselves with two threads and print their tables.
+DEFAULT_MARKS = "not slow and not bench"
+#: Workers for the default run: two cores' worth (more would rebuild every shared fixture once more).
+DEFAULT_WORKERS = 2
+
+
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: ``DEFAULT_WORKERS`` for the default selection on a machine with that many cores, else none."""
+    if (config.getoption("markexpr") or "") != DEFAULT_MARKS or (os.cpu_count() or 1) < DEFAULT_WORKERS:
+        return 0
+    return DEFAULT_WORKERS
+
 
 _MODEL_TESTS = str(Path(__file__).resolve().parent / "model")
 if _MODEL_TESTS not in sys.path:
@@ -16,9 +36,18 @@ if _MODEL_TESTS not in sys.path:
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _table_cache(tmp_path_factory):
+def _table_cache(tmp_path_factory, worker_id):
+    """One table cache for the run, shared by xdist's workers (tables are written atomically: a worker
+    never reads another's half-written file; at worst both build the same table once)."""
     mp = pytest.MonkeyPatch()
-    mp.setenv("SKINLAYERS_CACHE", str(tmp_path_factory.mktemp("skinlayers-cache")))
+    base = tmp_path_factory.getbasetemp()
+    folder = (base.parent if worker_id != "master" else base) / "skinlayers-cache"
+    folder.mkdir(exist_ok=True)
+    mp.setenv("SKINLAYERS_CACHE", str(folder))
+    if worker_id != "master":
+        import torch
+
+        torch.set_num_threads(1)
     yield
     mp.undo()
 
