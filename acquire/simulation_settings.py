@@ -150,7 +150,7 @@ class SimTruth(Strict):
         "pyramid", description="Renderer blur strategy for the truth (pyramid: its agreement with fft, docs/renderer.md)."
     )
     identity_below_px: float = Field(0.0, ge=0, description="Gaussians narrower than this act as the identity.")
-    series_tolerance: float = Field(1e-3, gt=0, lt=1, description="Light left in the inter-scattering series.")
+    series_tolerance: float = Field(1e-2, gt=0, lt=1, description="Light left in the inter-scattering series (closed by its geometric rest).")
     physics: Literal["diffusion", "transport"] = Field(
         "diffusion",
         description=(
