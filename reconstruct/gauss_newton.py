@@ -183,8 +183,6 @@ def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None,
             rejections += 1
             if progress is not None:
                 progress(it, ev.loss)
-            # before any step is kept the start may be far (its shared nodes projected from noisy per-pixel
-            # fits): let the damping grow further before giving up
             if rejections >= _rejection_limit(problem, settings, kept=len(history) > 1) or float(step.max()) < settings.xtol:
                 converged = True  # no step of any damping lowers the loss: a (local) optimum of this model
                 break

@@ -155,7 +155,7 @@ class FitSettings(Strict):
         le=20,
         description=(
             "gn, gn-hom with the renderer: rejected steps in a row tolerated once a step of the pass has been kept, "
-            "before the pass ends (each costs a render). 0: the first rejection ends it; the demo's 256² fit 2.0× "
+            "before the pass ends (each costs a render). 0: the first rejection ends it; the demo's 256² fit 1.3–2.0× "
             "faster, no map worse by more than 2% (docs/speed.md). Before any step is kept the damping may grow further."
         ),
     )

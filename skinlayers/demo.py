@@ -20,7 +20,8 @@ from .formats.errors import InputError
 from .formats.outputs import refuse_inside_session
 from .formats.version import software_version
 
-__all__ = ["accuracy_against_truth", "demo", "map_errors", "register", "scored_pixels", "session_rig", "simulate_session"]
+__all__ = ["accuracy_against_truth", "demo", "map_errors", "register", "scored_pixels", "session_rig", "sigma_coverage",
+           "simulate_session"]
 
 #: Folder the demo writes to when none is given; taken with a suffix (-2, -3, …) when it exists.
 DEFAULT_FOLDER = "skinlayers-demo"
@@ -124,6 +125,26 @@ def map_errors(truth, fit, keep) -> dict:
         value = (err.abs() / t[keep].clamp_min(1e-12)).median() if relative else err.abs().median()
         out[name] = {"median_error": float(value), "error_kind": "relative" if relative else "absolute",
                      "truth_median": float(t[keep].median()), "fit_median": float(f[keep].median())}
+    return out
+
+
+def sigma_coverage(truth, fit, sigma, pixels, names) -> dict[str, float]:
+    """Per map of ``names``, the share of ``pixels`` ``(H, W)`` bool of the fit's grid where the truth
+    (``SkinMaps``, box-averaged onto that grid) lies within 2σ of the fit; ``sigma`` ``(N_PARAMS, H, W)``
+    in ``PARAMETER_NAMES`` order."""
+    import torch.nn.functional as F  # noqa: PLC0415
+
+    from .model import PARAMETER_NAMES  # noqa: PLC0415
+
+    k = truth.shape[-1] // fit.shape[-1]
+    pixels = pixels.to("cpu")
+    out = {}
+    for name in names:
+        t = getattr(truth, name)[None].double().cpu()
+        t = (F.avg_pool2d(t, k) if k > 1 else t)[0, 0]
+        f = getattr(fit, name)[0].double().cpu()
+        within = (f - t).abs() <= 2 * sigma[PARAMETER_NAMES.index(name)].double().cpu()
+        out[name] = float(within[pixels].double().mean())
     return out
 
 

@@ -333,11 +333,8 @@ def _calibration_flags(calibrated: Path) -> list[str]:
 def _against_truth(fit, session: Path, truth_r: torch.Tensor, clean_cube: Path, noise_scale: float) -> dict:
     """Each map's median error and σ coverage against the truth over the scored pixels, and the residual
     over the camera's noise (``clean_cube``'s difference from the truth, times ``noise_scale``)."""
-    import torch.nn.functional as F  # noqa: PLC0415
-
-    from .demo import map_errors, scored_pixels  # noqa: PLC0415
+    from .demo import map_errors, scored_pixels, sigma_coverage  # noqa: PLC0415
     from .formats.cube import read_cube  # noqa: PLC0415
-    from .model import PARAMETER_NAMES  # noqa: PLC0415
     from .model.maps_io import read_maps  # noqa: PLC0415
     from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
 
@@ -346,19 +343,10 @@ def _against_truth(fit, session: Path, truth_r: torch.Tensor, clean_cube: Path, 
     hair = (((fit.flags.cpu().long() >> FLAG_BITS["hair"]) & 1) == 1) & (((fit.flags.cpu().long() >> FLAG_BITS["masked"]) & 1) == 0)
     errors = map_errors(truth, fit.maps, keep)
     row = {f"error_{m}": errors[m]["median_error"] for m in MAPS}
-    k = truth.shape[-1] // fit.maps.shape[-1]
-    cover, cover_hair = [], []
-    for i, name in enumerate(PARAMETER_NAMES):
-        if name not in TARGETS:
-            continue
-        t = getattr(truth, name)[None].double().cpu()
-        t = (F.avg_pool2d(t, k) if k > 1 else t)[0, 0]
-        f = getattr(fit.maps, name)[0].double().cpu()
-        within = (f - t).abs() <= 2 * fit.sigma[i].double().cpu()
-        cover.append(float(within[keep].double().mean()))
-        if bool(hair.any()):
-            cover_hair.append(float(within[hair].double().mean()))
-    row.update(sigma_cover=min(cover), hair_flagged=int(hair.sum()), sigma_cover_flagged=min(cover_hair) if cover_hair else math.nan)
+    cover = sigma_coverage(truth, fit.maps, fit.sigma, keep, TARGETS)
+    cover_hair = sigma_coverage(truth, fit.maps, fit.sigma, hair, TARGETS) if bool(hair.any()) else {}
+    row.update(sigma_cover=min(cover.values()), hair_flagged=int(hair.sum()),
+               sigma_cover_flagged=min(cover_hair.values()) if cover_hair else math.nan)
     clean = read_cube(clean_cube).reflectance.double()
     used = fit.checks.bands_used.cpu()
     noise = noise_scale * (clean - truth_r)[used][:, keep]

@@ -11,10 +11,7 @@ share of scored pixels whose truth lies within 2σ). Writes ``renderer_retries.c
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
-import torch
-import torch.nn.functional as F
 
 from bench_io import write_csv  # noqa: E402
 from demo_sessions import calibrated_session, refit  # noqa: E402
@@ -25,31 +22,15 @@ SESSIONS = {"seed 0": ("uncertainty_seed0", 0), "seed 1": ("uncertainty_seed1", 
 MAPS = ("C_m", "beta_m", "C_he", "C_hd")
 
 
-def sigma_cover(folder, name: str) -> dict[str, float]:
-    """Per map, the share of the fit's scored pixels whose truth (box-averaged to the fit's grid) lies within 2σ."""
-    from skinlayers.demo import scored_pixels
-    from skinlayers.formats.exr import read_exr
-    from skinlayers.model.maps_io import read_maps
-
-    truth = read_maps(folder / "session" / "truth" / "maps.exr")
-    channels, _ = read_exr(folder / name / "maps.exr")
-    keep = scored_pixels(torch.as_tensor(np.asarray(channels["flags"])).long()).numpy()
-    out = {}
-    for m in MAPS:
-        fit, sigma = np.asarray(channels[m]), np.asarray(channels[f"sigma_{m}"])
-        t = getattr(truth, m)[None].double()
-        k = t.shape[-1] // fit.shape[-1]
-        t = (F.avg_pool2d(t, k) if k > 1 else t)[0, 0].numpy()
-        out[m] = round(float((np.abs(fit - t) <= 2 * sigma)[keep].mean()), 3)
-    return out
-
-
 def test_renderer_retries_none_against_four():
+    from skinlayers.demo import scored_pixels, sigma_coverage
+    from skinlayers.model.maps_io import read_maps
     from skinlayers.reconstruct.settings import FitSettings
 
     rows = []
     for label, (name, seed) in SESSIONS.items():
         folder = calibrated_session(name, seed)
+        truth = read_maps(folder / "session" / "truth" / "maps.exr")
         for retries in (4, 0):
             fit, accuracy = refit(folder, FitSettings(renderer_retries=retries), f"retries_{retries}")
             row = {"session": label, "renderer_retries": retries, "wall_s": round(fit.wall_s, 1),
@@ -57,7 +38,8 @@ def test_renderer_retries_none_against_four():
                    "finest_iterations": fit.kept_levels[-1]["iterations_per_pass"]}
             row.update({f"err_{n}": round(v["median_error"], 4) for n, v in accuracy["parameters"].items()})
             row["residual_rms"] = round(accuracy["residual_rms"], 5)
-            row.update({f"cover_{m}": v for m, v in sigma_cover(folder, f"retries_{retries}").items()})
+            cover = sigma_coverage(truth, fit.maps, fit.sigma, scored_pixels(fit.flags), MAPS)
+            row.update({f"cover_{m}": round(v, 3) for m, v in cover.items()})
             rows.append(row)
     write_csv("renderer_retries.csv", rows, "renderer passes: no retry after progress against four, side by side")
     for old, new in zip(rows[::2], rows[1::2]):
