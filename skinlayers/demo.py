@@ -203,7 +203,7 @@ def demo(
 ) -> None:
     """Simulated capture → calibration → reconstruction → report, on embedded defaults.
 
-    Example: skinlayers demo            (about two minutes on two CPU cores, the first time longer)
+    Example: skinlayers demo            (two to three minutes on two CPU cores, the first time longer)
              skinlayers demo --size 64  (under a minute)
              skinlayers demo --size 32 --physics transport --photons 200000   (the truth by Monte Carlo)
     """
