@@ -50,6 +50,12 @@ DIRECT_BELOW_PX2 = 4.0
 #: the 4σ truncation already leave out.
 TAP_FLOOR = 1e-6
 
+#: A pass over images larger than this (bytes) runs in slabs of ``PASS_SLAB_BYTES``, cut across the
+#: blurred axis: each tap pair reads and writes the slab, which then stays in the processor's cache
+#: instead of streaming from memory once per tap (docs/speed.md, "Cut 3").
+PASS_SLAB_ABOVE_BYTES = 8 * 2**20
+PASS_SLAB_BYTES = 2**20
+
 
 def _trim(k: np.ndarray) -> np.ndarray:
     """Drop the symmetric outer taps that fall below ``TAP_FLOOR`` of the peak, renormalise."""
@@ -159,6 +165,24 @@ def _symmetric_pass(x: torch.Tensor, taps: np.ndarray, r: int, dim: int) -> torc
 
 
 def _symmetric_sums(x: torch.Tensor, taps: np.ndarray, r: int, dim: int) -> torch.Tensor:
+    """The pass along ``dim`` (-1 or -2 of ``(N, H, W)``), in cache-sized slabs when ``x`` is large."""
+    dim = dim % x.ndim
+    if x.ndim != 3 or dim == 0 or x.numel() * x.element_size() <= PASS_SLAB_ABOVE_BYTES:
+        return _sums(x, taps, r, dim)
+    across = 3 - dim  # the other image axis: rows for a pass along columns' neighbours, and back
+    shape = list(x.shape)
+    shape[dim] -= 2 * r
+    out = x.new_empty(shape)
+    line = x.shape[dim] * x.element_size()
+    width = max(16, PASS_SLAB_BYTES // line)
+    for i in range(x.shape[0]):
+        for start in range(0, x.shape[across], width):
+            take = min(width, x.shape[across] - start)
+            out[i].narrow(across - 1, start, take).copy_(_sums(x[i].narrow(across - 1, start, take), taps, r, dim - 1))
+    return out
+
+
+def _sums(x: torch.Tensor, taps: np.ndarray, r: int, dim: int) -> torch.Tensor:
     n = x.shape[dim] - 2 * r
     out = torch.mul(x.narrow(dim, r, n), float(taps[r]))
     scratch = torch.empty_like(out)

@@ -306,3 +306,20 @@ def test_the_truths_series_stays_tighter_than_the_fits_and_within_the_noise_of_a
     m, n = a._margin_px, a._window_px
     difference = (a.render_band(band).truth - b.render_band(band).truth)[m:m + n, m:m + n].abs()
     assert 0.0 < float(difference.max()) < 2e-4, float(difference.max())
+
+
+def test_the_truth_rendered_node_by_node_is_the_band_rendered_at_once():
+    """The simulator renders a band's wavelength nodes one at a time (docs/speed.md, cut 3) with the
+    series terms of all of them: the same image as one render of every node."""
+    settings = small_settings(filters={"wavelength_samples": 3})
+    bench = SimulatedBench(small_rig(), None, settings, seed=0, device="cpu")
+    band = 650.0
+    nodes = torch.tensor(bench.spectra[band].nodes_nm)
+    assert nodes.numel() == 3
+    light = Light("window", size_mm=bench.rig.geometry.window_mm, border_mm=settings.truth.border_mm)
+    with torch.no_grad():
+        at_once = bench.renderer.render(bench.scene_maps(), light, nodes, view_angle_deg=bench.rig.camera.angle_deg).image[0]
+    by_node = bench._render_nodes(light, nodes)
+    assert by_node.shape == at_once.shape
+    assert torch.allclose(by_node, at_once, rtol=0, atol=1e-7)
+    assert not torch.equal(by_node[0], by_node[2])
