@@ -47,8 +47,11 @@ class Lookup:
     def cached(self, cols: "Columns") -> "Lookup":
         """This lookup with the dense weights of ``cols`` computed once."""
         with torch.no_grad():
-            frac = self.frac.detach()
-            dense = torch.stack([_lerp(cols.shape[j], Lookup(self.index, frac)) for j in range(cols.shape.shape[0])])
+            plain = Lookup(self.index, self.frac.detach())
+            # filled column by column (a stack of a list would hold every column twice at its peak)
+            dense = torch.empty((cols.shape.shape[0], *self.frac.shape), dtype=self.frac.dtype, device=self.frac.device)
+            for j in range(cols.shape.shape[0]):
+                dense[j] = _lerp(cols.shape[j], plain)
         return Lookup(self.index, self.frac, dense)
 
     def cache_bytes(self, cols: "Columns") -> int:
