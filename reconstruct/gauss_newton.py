@@ -14,7 +14,7 @@ sensitivity left out), whose fixed point satisfies J̃ᵀr = 0 instead of Jᵀr 
 the model fits the data (``tests/reconstruct/test_fit_recovery.py`` fits noise-free renders of a
 heterogeneous scene). With noise it is not the least-squares optimum, but it reaches a lower loss than
 ``gn`` and ``adam`` in a fraction of their time, with smaller parameter errors (the optimisers side by
-side: ``tests/bench/test_bench_reconstruct.py``, figures in the README). The exact gradient
+side: ``tests/bench/test_bench_reconstruct.py``, figures in docs/speed.md). The exact gradient
 preconditioned by the homogeneous curvature converges slowly: detail finer than the light's spread
 reaches the gradient through J's neighbours' share twice (Jᵀ J), the curvature not at all.
 

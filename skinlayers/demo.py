@@ -42,8 +42,7 @@ def fresh_folder(base: Path) -> Path:
 
 def demo_scene() -> dict:
     """The demo's scene: the simulator's default without hairs. Hairs are interface absorbance the fit's
-    model does not hold; their halo in red light biases the maps around them (measured in the README,
-    "Accuracy")."""
+    model does not hold; their halo in red light biases the maps around them (measured in docs/accuracy.md)."""
     from .acquire.scene import load_scene  # noqa: PLC0415
 
     scene = load_scene(None).model_dump(mode="json")
