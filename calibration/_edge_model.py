@@ -9,22 +9,23 @@ Pre-blur, at signed inward distance x from the edge:
     O(x) = s (1 − (1 − e) (w e^{−x/ℓ1} + (1 − w) e^{−x/ℓ2}))        x ≥ 0   (skin)
 
 Two exponentials describe the rise the model's renderer gives (Table 2 skin, 7.5 mm window, 430–670
-nm) to within 0.5% of the plateau. The camera blurs by a Gaussian PSF σ, whose blur of
-``H(x) e^{−x/ℓ}`` is ``exp(σ²/2ℓ² − x/ℓ) Φ(x/σ − σ/ℓ)``, and integrates over each pixel: a superpixel
-over its four photosites' squares, weighted by their channels' share of the band (``raw.cell_weights``),
-projected exactly on the side's normal for the side's angle. The skin level varies linearly along the
+nm) closely (how closely: docs/calibration.md, "From calibration/_edge_model.py"). The camera blurs by
+a Gaussian PSF σ, whose blur of ``H(x) e^{−x/ℓ}`` is ``exp(σ²/2ℓ² − x/ℓ) Φ(x/σ − σ/ℓ)``, and
+integrates over each pixel: a superpixel over its four photosites' squares, weighted by their channels'
+share of the band (``raw.cell_weights``), projected exactly on the side's normal for the side's angle. The skin level varies linearly along the
 side (vignetting, texture).
 
 The edge's share ``e`` is ½ in principle, but ``s`` is the plateau the two exponentials extrapolate from
-the 10 px inside that the fit sees, and where the slow part of the rise is barely seen (430 nm on the
-full-size simulated bench: the skin still 3% short of its plateau 20 px in) that extrapolation
-overshoots: held at ½, the fitted edge moved 0.1 px inward on every side (0.2 px at the corners, measured
-on noise-free frames); left free it is held only by a weak prior towards ½ (``_EDGE_PRIOR``), which
-steadies the small windows whose rise is too short to tell from the step.
+the 10 px inside that the fit sees, and where the slow part of the rise is barely seen (in the blue, the
+skin is still short of its plateau well inside a full-size window) that extrapolation overshoots: held
+at ½, the fitted edge moved inward on every side, more at the corners; left free it is held only by a
+weak prior towards ½ (``_EDGE_PRIOR``), which steadies the small windows whose rise is too short to tell
+from the step (measurements: docs/calibration.md, "From calibration/_edge_model.py").
 
 Why a model: a derivative peak sits inside the true edge when the skin darkens towards it (by about
-σ² × ramp slope / step height: 0.2–0.5 px on a 110-px window), and interpolating a sampled edge a
-fraction of a pixel wide biases it with the pixel phase. Fitting the side's angle and offset together
+σ² × ramp slope / step height, a fraction of a pixel on a small window: docs/calibration.md, "From
+calibration/_edge_model.py"), and interpolating a sampled edge a fraction of a pixel wide biases it with
+the pixel phase. Fitting the side's angle and offset together
 with the profile removes both. Last, each stretch of ``_SEGMENT_PX`` along the side is refitted for its
 own offset and levels, and a robust line through those replaces the whole-side fit (``_segment_line``).
 """
@@ -36,14 +37,14 @@ import numpy as np
 __all__ = ["fit_edge_line"]
 
 _GRID_STEP_PX = 0.04  # resolution of the model along the normal
-# weight of the prior e ≈ ½, per √(pixels fitted): against none, 0.02 brought the worst corner of 128-px
-# windows from 0.53 to 0.33 raw px (6 simulated sessions, 3 bands) and left full-size ones at 0.12 px
+# weight of the prior e ≈ ½, per √(pixels fitted): against none it brings the worst corner of small
+# windows closer to the true edge (measurements: docs/calibration.md, "From calibration/_edge_model.py")
 _EDGE_PRIOR = 0.02
 _INSIDE_PX, _OUTSIDE_PX = 10.0, 6.0  # pixels used on either side of the edge
 _SEGMENT_PX = 8.0  # length of the stretches of a side refitted on their own
 _MIN_SEGMENTS = 5  # fewer segments (kept): the whole side's fit stands
 # the segments look only this far inside: a freckle a few px in shifts a segment's edge (the worst corner of
-# 128-px windows 0.43 raw px with 10 px, 0.33 with 6; 6 simulated sessions, 3 bands)
+# small windows is closer with 6 px than with 10: docs/calibration.md, "From calibration/_edge_model.py")
 _SEGMENT_INSIDE_PX = 6.0
 _SEGMENT_REACH_PX, _SEGMENT_STEP_PX = 1.5, 0.02  # shifts of a segment's edge tried, px
 
@@ -121,7 +122,8 @@ def fit_edge_line(
         return np.append(model(q) - y, prior * (q[9] - 0.5))
 
     try:
-        # lsmr: the dense SVD solver is 100× slower here when BLAS threads compete for the cores
+        # lsmr: the dense SVD solver is much slower here when BLAS threads compete for the cores
+        # (docs/calibration.md, "From calibration/_edge_model.py")
         fit = least_squares(
             residuals, q0, bounds=(lower, upper), loss="soft_l1", f_scale=0.1, x_scale="jac",
             tr_solver="lsmr", ftol=1e-6, xtol=1e-6,

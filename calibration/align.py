@@ -1,24 +1,25 @@
 """Band-to-band alignment of the rectified window images.
 
 Every band's window is cut out of its own frame, so the bands already agree up to the error of the
-corners (~0.03 cube px on the simulated bench); what is left is found by maximising the enhanced
+corners (a small fraction of a cube pixel); what is left is found by maximising the enhanced
 correlation coefficient (ECC; Evangelidis & Psarakis 2008, OpenCV ``findTransformECC``) between each band
 and a reference band in the middle of the spectrum. Across bands of different contrast ECC itself errs
-by 0.1–0.2 cube px (simulated sessions), so the pipeline applies only shifts beyond
-``align_min_shift_px`` — skin that slid under the tape — and reports the others.
+by more than that, so the pipeline applies only shifts beyond ``align_min_shift_px`` — skin that slid
+under the tape — and reports the others (both errors: docs/calibration.md, "From calibration/align.py").
 
 Skin differs in contrast from band to band (melanin and blood dominate the blue, little shows in the
 red), so the images compared are gradients of the Gaussian-smoothed bands — the two components
 (∂x, ∂y) as channels of one image, not the gradient magnitude. A band is close to a mixture of the same
 structures with band-dependent weights (absorbers darken every band, by different amounts); gradients
 are linear in that mixture, so each structure pulls towards the same shift, while the magnitude mixes
-overlapping structures non-linearly and biased the shift by up to 0.6 px in our tests against 0.25 px
-for the components. ECC is invariant to the bands' gain and offset.
+overlapping structures non-linearly and biased the shift more than the components did
+(docs/calibration.md, "From calibration/align.py"). ECC is invariant to the bands' gain and offset.
 
 The skin darkens towards the tape, a pattern that belongs to the window, not to the skin: skin that
-slid under the tape would be pulled back towards zero shift by it (a 1.6-px slide read as 1.2 px in
-our synthetic test). Each band is therefore divided by a smooth profile of the distance to the window
-edge (``flatten_edge_profile``: 1.55 px read), and a thin border along the edge is left out.
+slid under the tape would be pulled back towards zero shift by it. Each band is therefore divided by a
+smooth profile of the distance to the window edge (``flatten_edge_profile``), which gives back nearly
+the whole slide, and a thin border along the edge is left out (a synthetic test of both:
+docs/calibration.md, "From calibration/align.py").
 """
 
 from __future__ import annotations

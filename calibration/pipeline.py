@@ -297,8 +297,9 @@ def _align(stack: np.ndarray, valid: np.ndarray, inputs: _Inputs, settings: Cali
     )
     shifts = al.shifts_px * per_rect
     # Each band's window is cut from its own frame, which registers the bands to the corners'
-    # accuracy (~0.03 cube px); ECC across bands of different contrast is biased by 0.1–0.2 cube px
-    # (measured on simulated sessions), so only a larger shift — skin that slid under the tape — is applied.
+    # accuracy; ECC across bands of different contrast is biased by more than that (both:
+    # docs/calibration.md, "From calibration/align.py"), so only a larger shift — skin that slid under
+    # the tape — is applied.
     applied = al.converged & (np.hypot(shifts[:, 0], shifts[:, 1]) >= settings.align_min_shift_px)
     flags = alignment_flags([b.wavelength_nm for b in inputs.bands], shifts, al.converged, settings)
     if applied.any():

@@ -18,7 +18,8 @@ so the sum does not depend on the pattern's phase (RGGB, GBRG, …).
 Where a superpixel samples the scene depends on the band: its value weighs the four photosites by their
 channel's sensitivity, so under blue light it leans towards the blue photosite. ``cell_centroid`` gives
 that point from a flat frame (the Spectralon reference); positions found in superpixels convert back to
-raw photosites through it (up to 0.4 px off otherwise, measured on our synthetic sessions). The
+raw photosites through it (a fraction of a pixel off otherwise: docs/calibration.md, "From
+calibration/raw.py"). The
 footprint is lopsided too — under blue light mostly the one blue photosite — and ``cell_weights`` gives
 it to the window's edge model.
 """

@@ -3,8 +3,8 @@
 Per band, a column: above, the skin frame (superpixels, dark-subtracted) with the detected window
 outlined in red and the gray card's region in cyan; below, the calibrated band on one common
 reflectance scale (viridis, the scale bar on the right), masked pixels in magenta, and the band's
-caption. A band whose title is red carries a flag. Drawn with OpenCV (a few milliseconds; a
-matplotlib figure took 0.5–1.4 s, a quarter of a small calibration).
+caption. A band whose title is red carries a flag. Drawn with OpenCV: a matplotlib figure cost a
+noticeable share of a small calibration (timings: docs/calibration.md, "From calibration/report.py").
 """
 
 from __future__ import annotations

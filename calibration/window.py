@@ -115,8 +115,9 @@ def find_window(
         raise ValueError(f"{name}: window detection needs a 2-D image, got shape {img.shape}")
     quad = _coarse_quad(img, exclude, min_area_fraction, max_ring_ratio, name)
     side = float(np.mean(np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1)))
-    # The coarse outline lies inside the edge by up to ~2% of the side (the skin darkens towards the
-    # tape); the first search reaches that far, the later ones only refine.
+    # The coarse outline lies inside the edge (the skin darkens towards the tape; by how much:
+    # docs/calibration.md, "From calibration/window.py"); the first search reaches past that
+    # (``_COARSE_REACH``), the later ones only refine.
     searches = sorted({max(4.0, float(np.ceil(_COARSE_REACH * side))), 4.0, 2.0}, reverse=True)
     # Work on the window's neighbourhood only: a camera's full frame would make the splines slow.
     pad = int(searches[0]) + 24

@@ -137,8 +137,9 @@ def _pad_mode(boundary: str) -> str:
 def _separable(img: torch.Tensor, variance_px2: float, boundary: str, pixel: bool = False) -> torch.Tensor:
     """Blur ``(N, H, W)`` by the discrete Gaussian of the given variance, separably, same size.
 
-    Symmetric taps are applied as shifted sums (``k_j (x[i-j] + x[i+j])``): on CPUs this is an order
-    of magnitude faster than a one-channel ``conv2d``, and it is plain elementwise work on GPUs.
+    Symmetric taps are applied as shifted sums (``k_j (x[i-j] + x[i+j])``): on CPUs this is much
+    faster than a one-channel ``conv2d`` (docs/renderer.md, "From model/blur.py"), and it is plain
+    elementwise work on GPUs.
     """
     if variance_px2 <= 0:
         return img

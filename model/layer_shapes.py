@@ -2,11 +2,11 @@
 passes its light, tabulated by similarity from the project's Monte Carlo (the ``transport`` choice of
 ``ModelSettings.profiles``, with the totals of ``layer_totals``).
 
-Diffusion's shapes put too little light near the entry point and too much far from it: the dipole
-leaves 0.30 of the dermis's light beyond 1 mm at 640 nm where transport leaves 0.39 (docs/transport.md,
-"The dermis's point response"), and under the 7.5-mm window that is a 1% tilt across the bands which
-the fit reads as blood. Transport's shapes of a homogeneous layer depend on the albedo and the optical
-thickness alone once lengths are measured in units of 1/σt′, so tables over
+Diffusion's shapes put too little light near the entry point and too much far from it, and under the
+7.5-mm window that tilts the bands against each other, which the fit reads as blood (measurements:
+docs/transport.md, "The layers' shapes from the Monte Carlo" and "From model/layer_shapes.py").
+Transport's shapes of a homogeneous layer depend on the albedo and the optical thickness alone once
+lengths are measured in units of 1/σt′, so tables over
 
     x = log10(σa / σs′),    y = log10(σs′ d)   (the half-space: x alone),    ξ = |lateral offset| · σt′
 
@@ -29,8 +29,8 @@ What each shape is the shape of (the same light as ``layer_totals``' totals, per
 
 The Monte Carlo is ``model.transport.walk`` (isotropic scattering with σs = σs′, as the totals), on a
 row of tally columns 0.0025/σt′ wide out to ±200/σt′, every exit counted in its column
-(``across_y``). ``python -m skinlayers.model.layer_shapes`` regenerates the tables (about 20 minutes
-on two cores); reading them needs nothing but numpy and torch.
+(``across_y``). ``python -m skinlayers.model.layer_shapes`` regenerates the tables (its time:
+docs/transport.md, "From model/layer_shapes.py"); reading them needs nothing but numpy and torch.
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """Layer totals from radiative transport: the plane integrals of the five profiles the skin model combines,
 tabulated by similarity from adding-doubling (the ``transport`` choice of ``ModelSettings.profiles``).
 
-Diffusion's layer totals are off by up to +40% where absorption is not small against scattering and
-by up to +160% for the transmittance of a thin epidermis (docs/transport.md, "Diffusion against
-radiative transport"). Transport's totals of a homogeneous layer depend on the albedo and the
+Diffusion's layer totals are far off where absorption is not small against scattering and for the
+transmittance of a thin epidermis (docs/transport.md, "Diffusion against radiative transport", and
+"From model/layer_totals.py"). Transport's totals of a homogeneous layer depend on the albedo and the
 optical thickness alone (lengths scale with 1/σt′), so one table over
 
     x = log10(σa / σs′),    y = log10(σs′ d)   (the half-space: x alone)
@@ -11,7 +11,8 @@ optical thickness alone (lengths scale with 1/σt′), so one table over
 serves every wavelength, scattering law and thickness. The tables are computed once by
 adding-doubling (Prahl's ``iadpython``, isotropic scattering with σs = σs′, the similarity case the
 diffusion model rests on) and ship as package data; ``python -m skinlayers.model.layer_totals``
-regenerates them (about a minute; needs the ``test`` extra). Reading them needs nothing but numpy.
+regenerates them (its time: docs/transport.md, "From model/layer_totals.py"; needs the ``test``
+extra). Reading them needs nothing but numpy.
 
 What each table holds, per unit power *entering* the layer (the model's convention, DWRR08 §3):
 
@@ -26,16 +27,16 @@ What each table holds, per unit power *entering* the layer (the model's conventi
 ``combine`` then builds the five totals the renderer gathers with, with two steps diffusion does not
 need: (1) the dermis answers the collimated beam with ``R_c``, not ``R_d``, so T₁⁺ enters the
 combination as ``T_d + (R_c / R_d) T_c`` — with ``R₂⁺ = R_d`` the Eq. 7 series then reproduces
-``T_c R_c + T_d R_d`` exactly for homogeneous skin (against a stack by adding-doubling: within 0.6%
-over Table 2, against 2.2% treating all of T⁺ as Lambertian: docs/transport.md); (2) the small index
-step between the layers (1.40 over 1.38, total internal reflection beyond 80°) is added as a thin
+``T_c R_c + T_d R_d`` exactly for homogeneous skin (against a stack by adding-doubling it comes far
+closer than treating all of T⁺ as Lambertian: docs/transport.md, "From model/layer_totals.py"); (2) the
+small index step between the layers (1.40 over 1.38, total internal reflection beyond 80°) is added as a thin
 Fresnel interface with hemispherical reflectances from either side, by the scalar adding rule.
 
 A third table, ``transport_handover.csv``, holds the *hand-over factor* κ(x₁, y₁, x₂): Eq. 7's
 series hands light between the layers as if it were Lambertian, and κ on R₂⁺ makes it give the two
 layers' total as adding-doubling stacks them angle by angle (``handover_factor``; the setting
-``handover: angular``). With it the model is within 0.08% of the adding-doubling stack on Table 2
-(400–700 nm), against +0.52% without (docs/transport.md, "Homogeneous skin").
+``handover: angular``). With it the model comes far closer to the adding-doubling stack on Table 2
+(400–700 nm) than without (docs/transport.md, "Homogeneous skin", and "From model/layer_totals.py").
 
 Shapes: coefficients broadcast to ``(...)``; results ``(...)``. Lookups are Catmull-Rom cubic in
 (x, y), differentiable (C¹) with respect to σa and σs′.
@@ -84,7 +85,8 @@ TABLE_N_LAYER, TABLE_N_ABOVE = 1.40, 1.0
 #: Grid of x = log10(σa/σs′) and y = log10(σs′ d); outside x the end values hold (albedo → 1 or → 0).
 X_MIN, X_MAX, X_STEP = -4.0, 2.5, 0.05
 Y_MIN, Y_MAX, Y_STEP = -1.0, 1.0, 0.05
-#: Adding-doubling quadrature points (32 against 64 changes no total by more than 2·10⁻⁴ relative).
+#: Adding-doubling quadrature points (doubling them changes no total noticeably: docs/transport.md,
+#: "From model/layer_totals.py").
 QUAD_POINTS = 32
 #: Optical thickness that stands in for a half-space (the clearest tabulated medium, σa/σs′ = 10⁻⁴,
 #: has a diffusion length of 58 optical depths: e^{-2·10⁵/58} of its light reaches the far side).
@@ -92,7 +94,8 @@ HALF_SPACE_OPTICAL_THICKNESS = 1e5
 #: Values are stored as logs; totals below this count as zero (a thick dark slab's T).
 _FLOOR = 1e-280
 
-#: The hand-over table's grid: the same axes, coarser (the factor is within 0.85–1.01 and smooth in all three).
+#: The hand-over table's grid: the same axes, coarser (the factor stays near 1 and is smooth in all three;
+#: its range: docs/transport.md, "From model/layer_totals.py").
 HANDOVER_X_STEP, HANDOVER_Y_STEP = 0.25, 0.1
 #: Up to this many values of the epidermis's σs′ (one a band, as a rule), κ is read in y once per value.
 _HANDOVER_Y_SLICES = 4096
@@ -282,8 +285,9 @@ def handover_factor(sigma_a_epidermis, sigma_s_prime_epidermis, thickness_mm: fl
     epidermis's scattered transmission leans towards grazing angles, where the dermis returns more and
     the epidermis passes less back out. Adding-doubling stacks the layers angle by angle (32 streams);
     κ is what the scalar hand-over would need for R₂⁺ to give that stack's total, from the same
-    tables' layer totals: R₁₂ = R₁⁺ + T₁⁺ κR₂⁺ T₁⁻ / (1 − R₁⁻ κR₂⁺). It is 0.95–1.0 for skin (the
-    scalar series is 0.3–1% too bright in the green on homogeneous skin: docs/transport.md).
+    tables' layer totals: R₁₂ = R₁⁺ + T₁⁺ κR₂⁺ T₁⁻ / (1 − R₁⁻ κR₂⁺). It is a little below 1 for skin
+    (the scalar series is too bright in the green on homogeneous skin: docs/transport.md, "From
+    model/layer_totals.py").
     """
     sa1, ss1, sa2, ss2 = (torch.as_tensor(v) for v in (sigma_a_epidermis, sigma_s_prime_epidermis, sigma_a_dermis,
                                                         sigma_s_prime_dermis))

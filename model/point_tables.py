@@ -85,8 +85,8 @@ class PointTables:
         # every total at a node depends on that node's two σa alone, so the gradient of a total's sum
         # over the grid is its derivative at each node: one backward pass per total (reverse mode;
         # torch 2.13's forward mode takes a slow path at every operation with a constant operand, and
-        # its first use in a process costs ~2 s: measured, docs/model.md), bands in chunks (the graph's
-        # memory)
+        # its first use in a process is slow too: docs/model.md, "Point fits from tabulated totals"),
+        # bands in chunks (the graph's memory)
         parts = []
         for first in range(0, wl.numel(), _BUILD_BANDS):
             bands = slice(first, first + _BUILD_BANDS)

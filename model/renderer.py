@@ -46,8 +46,8 @@ __all__ = ["RenderResult", "SkinRenderer", "render_bytes"]
 
 #: Peak memory of a forward render per pixel of the padded grid and band, in float32: the blur stacks
 #: and per-pixel lookups, and on top the per-pixel Gaussian weights kept across terms (up to
-#: ``weight_cache_mb``); a backward pass needs about twice the forward's (measured at 128² and 256²:
-#: docs/renderer.md, "Speed and memory").
+#: ``weight_cache_mb``); a backward pass needs a multiple of the forward's (``_BACKWARD_FACTOR``; the
+#: measurements: docs/renderer.md, "Speed and memory").
 _FORWARD_BYTES, _CACHE_BYTES, _BACKWARD_FACTOR = 260.0, 230.0, 2.0
 
 
@@ -129,7 +129,8 @@ class SkinRenderer:
         cols = {p: columns(tables, "epidermis", p, plan) for p in EPIDERMIS_PROFILES}
         cols["R2_plus"] = columns(tables, "dermis", "R_plus", plan)
         # the dermis's answer, per exit pixel: through the interface, times the hand-over factor κ
-        # (transport; κ at the entry pixel or split between both draws features within 1% of this)
+        # (transport; κ at the entry pixel or split between both draws features much like this:
+        # docs/renderer.md, "From model/renderer.py")
         back = attenuation * handover_on_grid(self.model.handover_grid(wl, device), epi.index, epi.frac,
                                               derm.index, derm.frac) if self._angular else attenuation
         terms = series_terms or self._series_terms(cols, epi, derm, attenuation * back, b, wl.numel())

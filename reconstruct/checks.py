@@ -41,23 +41,23 @@ FLAG_BITS = {
 
 #: A used band whose fit stays off its measurement by more than this share of its mean reflectance, on
 #: average over the fitted pixels, is one no maps can match: its calibration (the Spectralon's certified
-#: value, the gray card, the filter) or the band's frames are suspect. Measured (docs/stability.md): on
-#: clean cubes every band within 0.15%; a green band 8% dark leaves 5.8–6.1%. A blue band's error the
-#: maps absorb (melanin), leaving no trace here.
+#: value, the gray card, the filter) or the band's frames are suspect. The limit lies well above what clean
+#: cubes leave and below what a miscalibrated green band leaves (docs/stability.md, "From
+#: reconstruct/checks.py"). A blue band's error the maps absorb (melanin), leaving no trace here.
 BAND_BIAS_LIMIT = 0.02
 
 #: The residual's RMS over the cube's own noise (``grid_choice.band_noise``, Immerkær's estimate from the
-#: cube itself; the same pixels and used bands) above which the model does not explain the data. Measured
-#: (docs/stability.md): the estimate is within ±15% of the true camera noise on simulated 32² cubes, a
-#: clean fit's residual is 0.93–1.06× the true noise, bands misregistered by 2 px leave 2.7×.
+#: cube itself; the same pixels and used bands) above which the model does not explain the data. The
+#: limit allows for the estimate's own error above a clean fit's residual and stays below what
+#: misregistered bands leave (docs/stability.md, "From reconstruct/checks.py").
 RESIDUAL_NOISE_LIMIT = 1.5
 
 #: A band whose own noise, relative to its reflectance, is below this share of its neighbours' (their
 #: geometric mean; the one neighbour at an end of the range) was smoothed: the subject moved during its
 #: frame, it was out of focus, or it was resampled. Its edges then differ from the other bands' and the
-#: maps take the difference, often below the residual limit. Measured (docs/stability.md): on clean
-#: simulated 32² cubes (Table 2's III and V, transport-rendered, with hairs) every band is 0.78× or more
-#: of its neighbours; the 550 nm band blurred by 3 px of motion 0.39×, by 5 px 0.20×.
+#: maps take the difference, often below the residual limit. The ratio lies below every band of clean
+#: cubes and above a band blurred by a few pixels of motion (docs/stability.md, "From
+#: reconstruct/checks.py").
 SMOOTH_BAND_RATIO = 0.5
 
 #: What the maps are meant to be read to: the median error per map (relative; β_m absolute) the demo and

@@ -127,8 +127,8 @@ def spatial_structure(layout: MapLayout, x: torch.Tensor, mask: torch.Tensor, mm
     pairs). ``x`` ``(N_PARAMS, H, W)``, ``mask`` ``(H, W)``.
 
     Per-pixel values count from ``EDGE_MM`` inside the window's edges: nearer, the light factor of the
-    skin's median is the model's own approximation (off by 0.3–0.7% for other skin, measured), and the
-    maps take it up as a ring (on a flat 128² patch C_m 1.1% low at the edge against 0.7% inside)."""
+    skin's median is the model's own approximation (off for other skin), and the maps take it up as a
+    ring (docs/reconstruct.md, "From reconstruct/fidelity.py")."""
     inner = int(round(EDGE_MM / mm_per_pixel))
     interior = torch.zeros_like(mask)
     interior[inner: mask.shape[0] - inner, inner: mask.shape[1] - inner] = True

@@ -52,10 +52,10 @@ __all__ = ["DEFAULT_BAND_FWHM_NM", "DEFAULT_VIEW_ANGLE_DEG", "FitEvent", "MapFit
 #: skin of a point fit of the level's mean spectrum (which ignores the window's edges), then at the skin
 #: of a uniform fit of the level (its light-weighted mean spectrum) under the factor before. The factors
 #: toward the skin are the Fourier-domain combination, the last a render; every pixel is fitted once,
-#: under the last, from the uniform skin. Measured on a flat 32² cube with every map per pixel
-#: (``forward: homogeneous``): β_m's median error 0.075 with one factor, 0.0092 with two, 0.0067 with
-#: three, 0.0070 with four (with one ``auto``'s check fails and the renderer fits). Re-made after each
-#: of three per-pixel fits instead (the scheme before): 0.099, 0.014, 0.006, at several times the cost.
+#: under the last, from the uniform skin. Three passes: β_m's error falls with the second and the third factor
+#: and no further with a fourth (with one ``auto``'s check fails and the renderer fits); re-making the
+#: factor after each of three per-pixel fits instead (the scheme before) ends about as well at several
+#: times the cost (docs/reconstruct.md, "From reconstruct/fit.py").
 LIGHT_FACTOR_PASSES = 3
 #: Where neither the settings nor the cube's header say: DWRR08 §6.1's camera, 30° off the flash axis,
 #: and its 10-nm band-pass filters.
@@ -332,11 +332,10 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
     maps whose values there show no spatial structure (``spatial_structure``) become one value for the
     patch, and where every map is one value (uniform skin) the homogeneous model is the renderer's own
     answer: the finest level is fitted at once, as five unknowns, without a render. (Tested earlier, after
-    the first or second pass, the maps still carry the start's light factor as a smooth bowl: on a flat
-    256² patch C_hd's neighbour correlation was 0.50 after the second, 0.13 after the third.) Otherwise the finest is checked at the
-    coarse maps upsampled (smooth: the check measures the scene's cross-talk, not that of the maps' own
-    pixel noise, which the renderer blurs and the homogeneous model does not: measured 0.81 of the
-    noise on a flat 128² cube at its own fine maps, 0.07 at the upsampled coarse ones).
+    the first or second pass, the maps still carry the start's light factor as a smooth bowl.) Otherwise
+    the finest is checked at the coarse maps upsampled (smooth: the check measures the scene's
+    cross-talk, not that of the maps' own pixel noise, which the renderer blurs and the homogeneous
+    model does not). Both: docs/reconstruct.md, "From reconstruct/fit.py".
     Returns the finest level's result (its evaluation the renderer's unless the skin is uniform), the
     choice and the map grids it fitted, or ``(None, choice, cells)`` where a check fails and the
     renderer's fit must run."""
@@ -364,7 +363,8 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
         return found.passed, evaluation
 
     skin = x  # the light factor's skin: the start's, then the level's uniform fits (its mean spectrum)
-    for _ in range(LIGHT_FACTOR_PASSES - 1):  # the factors toward it need no render (within 1% here)
+    # the factors toward it need no render (close to one here: docs/reconstruct.md, "From reconstruct/fit.py")
+    for _ in range(LIGHT_FACTOR_PASSES - 1):
         hom = level_problem(levels[0], cells, uniform_light_factor(problem, skin))
         uniform_fit = fit_level(0, hom, skin, log_scale, "homogeneous", fit_uniform)
         skin, log_scale = uniform_fit.x, uniform_fit.log_scale
@@ -398,7 +398,8 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
         return result, choice, cells
     if last > 0:
         # the window's edges fall off within a fraction of a millimetre: the finest level's factor is its
-        # own (an upsampled coarse one is off by 1% at the edge pixels, measured), the levels between
+        # own (an upsampled coarse one is off at the edge pixels: docs/reconstruct.md, "From
+        # reconstruct/fit.py"), the levels between
         # take its area means
         x_fine = upsample(x, levels[last].shape)
         factor = uniform_light_factor(level_problem(levels[last], cells), x_fine)

@@ -2,11 +2,11 @@
 
 Why. The camera sees the dermis only through the light's millimetre spread, and β_m and C_bc only
 through small changes of the spectrum's shape: per pixel, at a real camera's noise, they are not
-determined (Cramér–Rao bound, ``tests/bench/test_bench_identifiability.py``: σ(log C_hd) ≥ 0.89 per
-pixel at the simulated camera's noise), and their noise leaks into C_m through the correlations. A
-map may therefore be fitted on a grid of nodes ``cell_mm`` apart, bilinearly interpolated onto the
-pixels in the unconstrained (log-like) parameter — "model no more than a scene needs": the unknowns
-are the nodes, each seen by every pixel around it.
+determined (Cramér–Rao bound, ``tests/bench/test_bench_identifiability.py``; the bounds:
+docs/reconstruct.md, "Why: what the data hold"), and their noise leaks into C_m through the
+correlations. A map may therefore be fitted on a grid of nodes ``cell_mm`` apart, bilinearly
+interpolated onto the pixels in the unconstrained (log-like) parameter — "model no more than a scene
+needs": the unknowns are the nodes, each seen by every pixel around it.
 
 ``MapGrid`` is the bilinear operator U ``(H·W) × n`` from ``n = h·w`` nodes onto the pixels, stored
 sparsely (four nodes and weights per pixel) with exactly the sampling of

@@ -35,15 +35,15 @@ __all__ = ["CLOSING_MM", "HAIR_SIGMA_AWAY", "HAIR_SIGMA_ON", "HAIR_Z", "HALO_MM"
 RED_FROM_NM = 600.0
 #: The closing's half-width (mm): wider than a hair, narrower than a freckle or a vein; at least a pixel.
 CLOSING_MM = 0.1
-#: A pixel is a hair's where the top-hat exceeds this many noise σ. Measured on simulated 32² sessions
-#: (docs/stability.md): the top-hat of hairless skin reaches 5.4σ at its 99.9th percentile.
+#: A pixel is a hair's where the top-hat exceeds this many noise σ: above what the top-hat of hairless
+#: skin reaches at its 99.9th percentile (docs/stability.md, "From reconstruct/hairs.py").
 HAIR_Z = 6.0
 #: The noise σ of the red bands' mean log reflectance is taken as at least this: a cube smoother than a
 #: camera makes (a render without noise) would otherwise call every faint line of the skin a hair.
 MIN_SIGMA = 2e-3
-#: A hair's pixel is grey: the rest of the spectrum's top-hat at most this many times the red one's.
-#: Measured at 32² (docs/stability.md): hair pixels 0.4 (a hair's loss spreads wider in red light), the
-#: freckles of Table 2's darkest skin (V exterior) 1.7.
+#: A hair's pixel is grey: the rest of the spectrum's top-hat at most this many times the red one's. The
+#: ratio lies between hair pixels' (a hair's loss spreads wider in red light) and that of the freckles of
+#: Table 2's darkest skin (V exterior) (docs/stability.md, "From reconstruct/hairs.py").
 GREY_RATIO = 1.2
 #: Connected hair pixels spanning less than this (mm; at least two pixels) are dropped.
 MIN_LENGTH_MM = 0.4
@@ -52,9 +52,10 @@ HALO_MM = 0.3
 
 
 #: Where hairs were found, σ is widened by these factors per map: on the flagged pixels (``HAIR_SIGMA_ON``)
-#: and elsewhere (``HAIR_SIGMA_AWAY``: the maps on nodes carry a hair's pull everywhere). Measured on the
-#: demo's scene with its five hairs (256², seed 0; docs/stability.md): the factor each map's σ needed to
-#: cover 90% of the truth within 2σ. An uncertainty term of Type B, as ``uncertainty.MODEL_FLOOR``.
+#: and elsewhere (``HAIR_SIGMA_AWAY``: the maps on nodes carry a hair's pull everywhere). Set on the
+#: demo's scene with its five hairs (256², seed 0; docs/stability.md, "Hairs on the demo's scene"): the
+#: factor each map's σ needed to cover 90% of the truth within 2σ. An uncertainty term of Type B, as
+#: ``uncertainty.MODEL_FLOOR``.
 HAIR_SIGMA_ON = {"C_m": 1.8, "beta_m": 1.7, "C_he": 1.0, "C_bc": 1.0, "C_hd": 2.7}
 HAIR_SIGMA_AWAY = {"C_m": 1.0, "beta_m": 1.25, "C_he": 1.0, "C_bc": 1.0, "C_hd": 1.85}
 

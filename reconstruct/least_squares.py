@@ -52,9 +52,8 @@ def reverse_jacobian(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor
     (``is_grads_batched``), each row's gradient its own (rows independent). For problems with few
     outputs per row (a cube's bands, not a spectrometer's hundred samples): forward mode pays a fixed
     cost per operation with a non-dual operand (a constant, a scalar: its zero tangent takes a slow
-    path in torch 2.13, 0.2–0.7 ms an operation, measured), which reverse mode does not. Measured on
-    the homogeneous model at 9 bands: 26 against 60 ms for 4,096 rows, 3.4 against 18 ms for one; at
-    101 samples and 400 rows forward mode wins, 134 against 1,424 ms."""
+    path in torch 2.13), which reverse mode does not; with many outputs per row forward mode wins
+    (timings: docs/reconstruct.md, "From reconstruct/least_squares.py")."""
     xx = x.detach().clone().requires_grad_(True)
     with torch.enable_grad():
         out = fn(xx)

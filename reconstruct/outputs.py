@@ -37,8 +37,8 @@ __all__ = ["MARKER", "OUTPUT_NAMES", "fit_summary", "reconstruct_cube", "write_o
 
 #: A map resting at a bound of its range (``at_bound_fraction``) on at least this share of the visible
 #: pixels is reported undetermined in ``fit.json``: its value is the bound's, and its σ (the noise's
-#: share of a free parameter's error) says nothing of its error (the demo's carotene: fitted 7.5e-6
-#: against 8e-5, σ 36% of the value, at its lower bound on every pixel).
+#: share of a free parameter's error) says nothing of its error (the demo's carotene, at its lower bound
+#: on every pixel: docs/reconstruct.md, "From reconstruct/outputs.py").
 UNDETERMINED_AT_BOUND_SHARE = 0.5
 #: What a fit writes; ``fit.json`` last: its presence marks a complete reconstruction.
 MARKER = "fit.json"

@@ -46,10 +46,10 @@ _EXTRA_STARTS = (
     {"C_m": 0.12, "beta_m": 0.8, "C_he": 0.01, "C_bc": 0.005, "C_hd": 0.02},
 )
 #: ``method`` → the fixed starts its iterations begin from (``"tables"`` adds each spectrum's nearest
-#: library entries). Measured on 4,000 simulated spectra at the render bands (point_fit.csv,
-#: docs/model.md): the library's two nearest plus the two dark starts were never worse than the exact
-#: fit by more than 1%; the nearest alone plus the paper's start was, on 0.8% of spectra (up to 5×,
-#: other minima of eight bands and five unknowns).
+#: library entries). Chosen on simulated spectra at the render bands (point_fit.csv): the library's two
+#: nearest plus the two dark starts keep up with the exact fit; the nearest alone plus the paper's start
+#: did not, on a few spectra (other minima of eight bands and five unknowns; docs/model.md, "From
+#: reconstruct/spectrum_fit.py").
 METHODS = {"tables": _EXTRA_STARTS, "exact": (PAPER_START, *_EXTRA_STARTS)}
 #: The library the tabulated fit starts from: every combination of these levels (1,440 spectra), spaced
 #: about evenly in log concentration over the skin DWRR08 Table 2 spans and beyond.
@@ -63,9 +63,10 @@ LIBRARY_LEVELS = {
 #: Library entries each spectrum starts from (nearest first).
 LIBRARY_STARTS = 2
 #: The tabulated fit stops, after this many iterations, each start losing to its spectrum's best by
-#: over ``PRUNE_FACTOR`` in cost. Measured on 4,000 simulated spectra at the render bands: 0.78 → 0.56
-#: ms per spectrum, none worse; after 3 iterations 0.2% were worse (up to 2.3×). The exact fit, the
-#: reference, runs every start to the end (pruned the same way, 1 in 4,000 came out 1.7% worse).
+#: over ``PRUNE_FACTOR`` in cost: faster and no spectrum worse at the render bands, where pruning after
+#: fewer iterations made some worse. The exact fit, the reference, runs every start to the end (pruned
+#: the same way, a rare spectrum came out worse). The measurements: docs/model.md, "From
+#: reconstruct/spectrum_fit.py".
 PRUNE_AFTER = 5
 PRUNE_FACTOR = 4.0
 #: A parameter within this fraction of its range of a bound is reported at the bound.
@@ -73,7 +74,8 @@ AT_BOUND_FRACTION = 1e-3
 #: The free scale's log is kept within ±this (a factor e³: any calibration error is far inside).
 _LOG_SCALE_LIMIT = 3.0
 #: Peak memory per element of the batched problem (spectrum × start × unknown × sample; measured on
-#: NIST's forearms, 101 samples: 1.2 kB) and the memory a chunk of spectra may take.
+#: NIST's forearms: docs/model.md, "From reconstruct/spectrum_fit.py") and the memory a chunk of spectra
+#: may take.
 _BYTES_PER_ELEMENT, _CHUNK_BYTES = 1200.0, 1 << 30
 
 
@@ -129,9 +131,9 @@ def fit_spectra(
     autodiff) from the paper's start and two darker ones; ``"tables"`` iterates on the model's totals
     tabulated at these bands (``model.point_tables``: within ~1e-6 of the exact model, Jacobian in
     closed form) from each spectrum's two nearest entries of a library of model spectra and the two
-    darker starts, pruning losing starts early (measured 1.4–3.7× faster on NIST with the build,
-    4.5× at eight bands, at the same residuals: docs/model.md). Either way the best end point is
-    kept and its residual is the exact model's.
+    darker starts, pruning losing starts early (faster on NIST with the build and at eight bands, at
+    the same residuals: docs/model.md, "From reconstruct/spectrum_fit.py"). Either way the best end
+    point is kept and its residual is the exact model's.
     ``starts`` replaces the fixed starts. ``chunk``: spectra fitted at once (default: as many as
     ``_CHUNK_BYTES`` holds); ``progress(done, total)`` after each chunk.
     """

@@ -91,8 +91,9 @@ FIXED_MODELS = {"paper": SpectrumModel(free_scale=True), "fixed": SpectrumModel(
 #: ``--model``'s named values; anything else is a YAML file of a ``SpectrumModel``.
 MODEL_CHOICES = ("auto", *FIXED_MODELS)
 #: Iterations of a fit that frees constants (``fit_spectra``'s limit). It starts at its nested model's
-#: end point, so most spectra stop long before: measured on NIST's forearms, a cap of 30 saved 7% of
-#: the time and left some residuals up to 0.4% higher (spectrum_models_nist.csv), so none is set.
+#: end point, so most spectra stop long before; on NIST's forearms a lower cap saved little time and left
+#: some residuals higher (spectrum_models_nist.csv; docs/model.md, "Point fits that choose their model"),
+#: so none is set.
 EXTENDED_MAX_ITERATIONS = 100
 
 

@@ -4,8 +4,8 @@
 
 ``homogeneous``: the point-spectrum fit (``spectrum_fit.fit_spectra`` with ``method="tables"``:
 batched projected Levenberg–Marquardt on the homogeneous model's tabulated totals, four starts per
-spectrum; measured 4.5× faster than the exact fit at the render bands, never more than 1% worse,
-docs/model.md) of every loss pixel's
+spectrum; faster than the exact fit at the render bands and hardly worse: docs/model.md, "From
+reconstruct/start.py") of every loss pixel's
 spectrum, divided by the camera's exit factor (the cube holds reflectance factors at the view angle,
 the homogeneous model diffuse reflectance), ignoring the cross-talk between pixels and the window's
 dark edges. It runs on the coarsest level only, where pixels are few; finer levels start from the

@@ -202,8 +202,8 @@ def demo(
 ) -> None:
     """Simulated capture → calibration → reconstruction → report, on embedded defaults.
 
-    Example: skinlayers demo            (two to three minutes on two CPU cores, the first time longer)
-             skinlayers demo --size 64  (under a minute)
+    Example: skinlayers demo            (the rig's 256×256 cube; the README states its time, the first run longer)
+             skinlayers demo --size 64  (a 64×64 cube, quicker)
              skinlayers demo --size 32 --physics transport --photons 200000   (the truth by Monte Carlo)
     """
     import yaml  # noqa: PLC0415

@@ -44,7 +44,8 @@ __all__ = ["COLUMNS", "CONDITIONS", "METHODS", "StabilityPlan", "StabilityResult
 
 MAPS = ("C_m", "beta_m", "C_he", "C_bc", "C_hd")
 #: The residual's RMS over the camera's noise RMS (same pixels and bands) at or below which the residual is
-#: "at the noise": clean sessions measure 0.93–1.06 with the default fit (docs/tradeoff.md).
+#: "at the noise": above what clean sessions give with the default fit (docs/stability.md, "From
+#: skinlayers/stability.py").
 RESIDUAL_AT_NOISE = 1.2
 #: The share of scored pixels whose truth each targeted map's σ must cover within 2σ.
 SIGMA_COVER = 0.85

@@ -68,8 +68,9 @@ _ALL_PER_PIXEL = dict.fromkeys(MAPS, 0.0)
 #: DWRR08's fit ran 200–500 gradient steps (§6.3); first-order methods take up to FIRST_ORDER_CAP ×
 #: max_iterations steps (reconstruct/first_order.py), so the paper's scheme is capped at 300.
 PAPER_STEPS = 300
-#: --quick: the paper's scheme at its fewest steps (§6.3: 200), on the transport sessions only (at 32²
-#: each step's 1 + N_PARAMS renders take about 1.3 s on two cores: 300 steps are minutes a session).
+#: --quick: the paper's scheme at its fewest steps (§6.3: 200), on the transport sessions only (each
+#: step costs 1 + N_PARAMS renders, so 300 steps are minutes a session: docs/tradeoff.md, "What is
+#: swept, and against which truth").
 QUICK_PAPER_STEPS = 200
 QUICK_PAPER_TRUTHS = ("transport",)
 #: The scale sweep's paper: its time per step is what grows with the cube (the steps do not), so it runs

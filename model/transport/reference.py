@@ -40,8 +40,9 @@ from .walk import Medium, walk
 
 __all__ = ["BYTES_PER_PHOTON", "TransportRenderer", "TransportResult", "TransportTotals", "Y_INVARIANT_LIGHTS", "check_physics_options"]
 
-#: Peak memory per photon of a batch in flight (its state and the step's temporaries): 10⁷ photons in
-#: batches of 2¹⁸ peaked 282 MB over what the process held before (docs/transport.md).
+#: Peak memory per photon of a batch in flight (its state and the step's temporaries), from the peak a
+#: large run raised over what the process held before (docs/transport.md, "The transport reference",
+#: "Speed and memory").
 BYTES_PER_PHOTON = 1100
 
 #: Lights that do not vary along y (and go on beyond the maps): on maps of one row, a scene invariant
@@ -256,7 +257,8 @@ def _convolve_kernel(irradiance: torch.Tensor, kernel: torch.Tensor, shape: tupl
     homogeneous medium whose point response is ``kernel`` ``(K, 2·(h + b) − 1, 2·(w + c) − 1)`` (offset 0 at
     its centre; b, c the irradiance's border): Σ_cells E(cell) K(pixel − cell). By FFT: the kernel is
     twice the lit field's side, so a direct convolution's work and memory grow with the fourth power of
-    the side (a 128² cube under the window asked for 230 GB)."""
+    the side (far beyond memory already for a 128² cube under the window: docs/transport.md,
+    "From model/transport/reference.py")."""
     h, w = shape
     hl, wl = irradiance.shape
     kh, kw = kernel.shape[-2:]

@@ -54,8 +54,8 @@ __all__ = ["Medium", "Tally", "walk"]
 _SURVIVE = 0.1  # Russian roulette: the chance to go on, the weight then ×1/this
 _MAX_STEPS = 2_000_000  # a safety cap on the iterations of one batch; photons still alive then are counted as lost
 #: Fewer photons alive than this on a CPU: the walk's tail runs on one thread. Its steps are too small to
-#: share, and when the cores are busy a shared step waits for a descheduled thread: 8,000 photons took
-#: 35× longer on two threads than on one beside another job (docs/transport.md, "Speed and memory").
+#: share, and when the cores are busy a shared step waits for a descheduled thread, far longer than one
+#: thread takes (docs/transport.md, "The transport reference", "Speed and memory").
 _SERIAL_BELOW = 1 << 15
 #: The dead (weight 0, which tally nothing) are dropped once they are 1/this of the photons: each drop
 #: copies every photon's state, so the walk carries a few dead rather than copy at every step.
