@@ -30,6 +30,7 @@ from .gaussians import gaussian_sum_hankel
 from .layer_shapes import shape_transforms
 from .layer_totals import collimated_transmission, handover_grid, handover_on_grid, layer_totals
 from .params import LayerAbsorption, SkinParams, layer_absorption
+from .point_tables import PointTables
 from .profiles import multipole_hankel, multipole_totals
 from .radiometry import entry_transmittance
 from .settings import ModelSettings
@@ -97,11 +98,9 @@ class SkinModel:
             self._tables[key] = load_profile_tables(w, self.settings, self.cache_dir, progress)
         return self._tables[key]
 
-    def point_tables(self, wavelength_nm: torch.Tensor, device: torch.device | str | None = None):
+    def point_tables(self, wavelength_nm: torch.Tensor, device: torch.device | str | None = None) -> PointTables:
         """The homogeneous model's totals tabulated at these bands for point fits
         (``point_tables.PointTables``), made once per set of bands and kept on each device asked for."""
-        from .point_tables import PointTables  # it builds on this class
-
         w = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
         key = ("point", tuple(round(float(x), 6) for x in w), str(torch.device(device or "cpu")))
         if key not in self._point:

@@ -21,12 +21,15 @@ coefficients ``(L·(S-1)², 5·16)`` for S nodes per axis.
 from __future__ import annotations
 
 import itertools
+from typing import TYPE_CHECKING
 
 import torch
 
-from .layered import SkinModel
 from .params import N_PARAMS, SkinParams, layer_absorption_jacobian, parameter_bounds
 from .radiometry import entry_transmittance
+
+if TYPE_CHECKING:  # annotations only: layered builds these tables (no import circle)
+    from .layered import SkinModel
 
 __all__ = ["POINT_TABLE_NODES", "PointTables"]
 
