@@ -57,6 +57,7 @@ import numpy as np
 import torch
 
 from .fresnel import fresnel_reflectance
+from .spectra import MAX_WAVELENGTH_NM, MIN_WAVELENGTH_NM, epidermis_scattering
 
 __all__ = [
     "HalfSpaceTotals",
@@ -374,8 +375,6 @@ def check_indices(n_above: float, n_epidermis: float) -> None:
 def check_optics(optics) -> None:
     """Refuse, when the settings are made, optics the tables cannot serve: other indices, or an
     epidermis whose σs′·d (over every wavelength the model takes) leaves the tabulated range."""
-    from .spectra import MAX_WAVELENGTH_NM, MIN_WAVELENGTH_NM, epidermis_scattering  # noqa: PLC0415 (spectra imports settings)
-
     check_indices(optics.n_above, optics.n_epidermis)
     wavelength = torch.linspace(MIN_WAVELENGTH_NM, MAX_WAVELENGTH_NM, 43, dtype=torch.float64)
     tau = epidermis_scattering(wavelength, optics) * optics.epidermis_thickness_mm

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..formats.errors import InputError
-from .settings import SkinOptics
+from .optics import SkinOptics
 
 __all__ = [
     "MIN_WAVELENGTH_NM",

@@ -105,9 +105,8 @@ def test_fitting_a_cube_does_not_load_opencv():
     assert subprocess.run([sys.executable, "-c", code], cwd=ROOT).returncode == 0
 
 
-# Import circles inside a part (any import, at module level or inside a function): the one that is
-# left, to be broken by moving the optics check out of the settings' validator (issue 43).
-_KNOWN_CIRCLES = {frozenset({"model.layer_totals", "model.settings", "model.spectra"})}
+# Import circles inside a part (any import, at module level or inside a function): none.
+_KNOWN_CIRCLES: set = set()
 
 
 def _module_imports(part: str) -> dict[str, set[str]]:
@@ -179,7 +178,7 @@ def _circles(graph: dict[str, set[str]]) -> set[frozenset[str]]:
     return found
 
 
-def test_no_import_circle_inside_a_part_but_the_known_one():
+def test_no_import_circle_inside_a_part():
     circles = set().union(*(_circles(_module_imports(part)) for part in _ALLOWED))
     assert circles == _KNOWN_CIRCLES, sorted(sorted(c) for c in circles)
 
