@@ -104,7 +104,7 @@ def read_raw(path: str | Path, saturation_margin: float = 0.01, label: str | Non
             white = float(raw.white_level)
     except RawDecodeError:
         raise
-    except Exception as exc:  # LibRaw reports corrupt and truncated files with several exception types
+    except Exception as exc:  # noqa: BLE001 (LibRaw reports corrupt and truncated files with several exception types)
         message = exc.args[0].decode(errors="replace") if exc.args and isinstance(exc.args[0], bytes) else str(exc)
         raise RawDecodeError(
             f"{name}: cannot decode raw file ({type(exc).__name__}: {message or 'no detail'}); corrupt or truncated?"

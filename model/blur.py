@@ -195,12 +195,12 @@ def _sums(x: torch.Tensor, taps: np.ndarray, r: int, dim: int) -> torch.Tensor:
 
 class _SymmetricPass(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, taps, r, dim):  # noqa: D102
+    def forward(ctx, x, taps, r, dim):
         ctx.taps, ctx.r, ctx.dim = taps, r, dim % x.ndim
         return _symmetric_sums(x, taps, r, dim)
 
     @staticmethod
-    def backward(ctx, grad):  # noqa: D102
+    def backward(ctx, grad):
         d, r = ctx.dim, ctx.r
         pad = [0, 0] * (grad.ndim - 1 - d) + [2 * r, 2 * r]
         return _symmetric_sums(F.pad(grad, pad), ctx.taps, r, d), None, None, None
@@ -355,12 +355,12 @@ def _upsample_sums(x: torch.Tensor, factor: int, dim: int) -> torch.Tensor:
 
 class _Upsample(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, factor, dim):  # noqa: D102
+    def forward(ctx, x, factor, dim):
         ctx.factor, ctx.dim, ctx.shape = factor, dim % x.ndim, x.shape
         return _upsample_sums(x, factor, dim)
 
     @staticmethod
-    def backward(ctx, grad):  # noqa: D102
+    def backward(ctx, grad):
         d, f = ctx.dim, ctx.factor
         n = ctx.shape[d] - 4
         g = grad.unflatten(d, (n, f))

@@ -190,13 +190,13 @@ def _forward(f: torch.Tensor, sets: list, plan: BlurPlan) -> list[torch.Tensor]:
 
 class _Gather(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, plan, cols, kinds, indices, caches, f, *fracs):  # noqa: D102
+    def forward(ctx, plan, cols, kinds, indices, caches, f, *fracs):
         ctx.plan, ctx.cols, ctx.kinds, ctx.indices, ctx.caches = plan, cols, kinds, indices, caches
         ctx.save_for_backward(f, *fracs)
         return tuple(_forward(f, _sets(cols, kinds, indices, caches, fracs), plan))
 
     @staticmethod
-    def backward(ctx, *grads):  # noqa: D102
+    def backward(ctx, *grads):
         f, *fracs = ctx.saved_tensors
         sets = _sets(ctx.cols, ctx.kinds, ctx.indices, ctx.caches, fracs)
         need_f = ctx.needs_input_grad[5]

@@ -441,8 +441,8 @@ def collimated_transmission(sigma_a_epidermis, sigma_s_prime_epidermis, thicknes
 
 
 def _layer_matrices(albedo: float, optical_thickness: float, n_layer: float, n_above: float):
-    import iadpython
-    from iadpython.combine import simple_single_layer_matrices
+    import iadpython  # noqa: PLC0415 (adding-doubling builds tables offline; iadpython is a test dependency)
+    from iadpython.combine import simple_single_layer_matrices  # noqa: PLC0415 (as above)
 
     sample = iadpython.Sample(a=albedo, b=optical_thickness, g=0.0, d=1.0, n=n_layer, n_above=n_above,
                               n_below=n_above, quad_pts=QUAD_POINTS)
@@ -460,8 +460,8 @@ def adding_doubling_slab(albedo: float, optical_thickness: float, n_layer: float
     incidence of unit flux inside the slab is the weight vector itself, light leaving into air exists
     only above the critical cosine (the rows beyond it), the matched side takes every row.
     """
-    from iadpython.combine import add_slide_above
-    from iadpython.start import boundary_layer
+    from iadpython.combine import add_slide_above  # noqa: PLC0415 (as above)
+    from iadpython.start import boundary_layer  # noqa: PLC0415 (as above)
 
     sample, r, t = _layer_matrices(albedo, optical_thickness, n_layer, n_above)
     r01, r10, t01, t10 = boundary_layer(sample, top=True)
@@ -486,8 +486,8 @@ def adding_doubling_half_space(albedo: float, n_layer: float = TABLE_N_LAYER) ->
 
 def _slab_under_boundary(albedo: float, optical_thickness: float, n_layer: float, n_above: float):
     """The slab's matrices with the boundary above it (both directions) and the quadrature's sample."""
-    from iadpython.combine import add_slide_above
-    from iadpython.start import boundary_layer
+    from iadpython.combine import add_slide_above  # noqa: PLC0415 (as above)
+    from iadpython.start import boundary_layer  # noqa: PLC0415 (as above)
 
     sample, r, t = _layer_matrices(albedo, optical_thickness, n_layer, n_above)
     r01, r10, t01, t10 = boundary_layer(sample, top=True)
@@ -504,7 +504,7 @@ def _half_space(albedo: float, n_layer: float, n_above: float):
 def _stack_total(sample, slab_under_boundary, half_space, n_layer: float, n_above: float) -> float:
     """R of the slab (under its boundary) on the half-space, added angle by angle: normal collimated
     light, per unit power entering, specular excluded."""
-    from iadpython.combine import add_layers
+    from iadpython.combine import add_layers  # noqa: PLC0415 (as above)
 
     r02, r20, t02, t20 = slab_under_boundary
     r, t = half_space[:2]
@@ -543,7 +543,7 @@ def adding_doubling_two_layers(x_epidermis: float, y_epidermis: float, x_dermis:
 
 def build_handover(folder: Path, n_layer: float = TABLE_N_LAYER, n_above: float = TABLE_N_ABOVE) -> None:
     """Compute the hand-over factors κ(x₁, y₁, x₂) by adding-doubling into ``folder``."""
-    import iadpython
+    import iadpython  # noqa: PLC0415 (adding-doubling builds tables offline; iadpython is a test dependency)
 
     halves = {float(x2): _half_space(1.0 / (1.0 + 10.0**x2), n_layer, n_above) for x2 in HANDOVER_X_GRID}
     with (folder / HANDOVER_FILE).open("w") as f:
@@ -570,7 +570,7 @@ def build_handover(folder: Path, n_layer: float = TABLE_N_LAYER, n_above: float 
 
 def build(folder: Path, n_layer: float = TABLE_N_LAYER, n_above: float = TABLE_N_ABOVE) -> None:
     """Compute the three tables by adding-doubling and write them into ``folder`` (the package's data)."""
-    import iadpython
+    import iadpython  # noqa: PLC0415 (adding-doubling builds tables offline; iadpython is a test dependency)
 
     start = time.perf_counter()
     ratio = 10.0**X_GRID

@@ -226,7 +226,6 @@ class SkinRenderer:
     def _series_terms(self, cols, epi, derm, round_trip, batch, bands) -> int:
         """Terms until the geometric tail (A² κ R₁⁻ R₂⁺ per bounce, worst pixel; ``round_trip`` = A² κ)
         holds < tolerance."""
-        rs = self.settings.render
         with torch.no_grad():
             r1m = total(cols["R_minus"], epi)
             r2p = total(cols["R2_plus"], derm)

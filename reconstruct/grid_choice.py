@@ -167,7 +167,6 @@ def crb_pixel_variance(kernels: torch.Tensor, noise: torch.Tensor, spacing: list
     # blocks: pixel frequencies q = ν + n_min·j share node frequencies; patch maps live in block ν = 0
     nodes = [lattice[k] for k in coarse if spacing[k] != PATCH]
     n_min = min(nodes) if nodes else m
-    reps = m // n_min
     rk = {k: (1 if spacing[k] == PATCH else lattice[k] // n_min) for k in coarse}
     offset, n_b = {}, 0
     for k in coarse:
@@ -184,8 +183,8 @@ def crb_pixel_variance(kernels: torch.Tensor, noise: torch.Tensor, spacing: list
     flat = scc.reshape(m * m, len(coarse), len(coarse))
     prec = torch.zeros(n_min * n_min, n_b, n_b, dtype=cdt, device=dev)
     for a, k in enumerate(coarse):
-        for b, l in enumerate(coarse):
-            prec.index_put_((block, slot[k], slot[l]), flat[:, a, b], accumulate=True)
+        for b, k2 in enumerate(coarse):
+            prec.index_put_((block, slot[k], slot[k2]), flat[:, a, b], accumulate=True)
     # a patch map has no information outside block 0: hold it there so the blocks stay invertible
     diag = prec.diagonal(dim1=-2, dim2=-1)
     for k in coarse:

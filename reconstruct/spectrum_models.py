@@ -190,7 +190,7 @@ def select_spectrum_models(
     wl = torch.as_tensor(wavelength_nm, dtype=torch.float64)
     order = _candidates(candidates)
     total = len(order) + int(() not in order)
-    within = (lambda done, count: progress(done / count, total)) if progress is not None else None  # noqa: E731
+    within = (lambda done, count: progress(done / count, total)) if progress is not None else None
     base = fit_spectra(measured, wl, model, free_scale=free_scale, specular_included=specular_included, method=method,
                        progress=within)
     fits: dict[tuple[str, ...], SpectrumFit] = {(): _with_defaults(base, model)}

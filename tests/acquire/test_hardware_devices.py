@@ -21,7 +21,7 @@ CAMERA = os.environ.get("SKINLAYERS_CAMERA") == "1"
 
 @pytest.mark.skipif(not WHEEL_PORT, reason="set SKINLAYERS_WHEEL_PORT to test a real FW102C")
 def test_real_wheel_moves_and_reads_back():
-    from skinlayers.acquire.fw102c import FW102C  # noqa: PLC0415
+    from skinlayers.acquire.fw102c import FW102C
 
     count = int(os.environ.get("SKINLAYERS_WHEEL_POSITIONS", "6"))
     with FW102C.open(WHEEL_PORT, WheelConfig(port=WHEEL_PORT, position_count=count)) as wheel:
@@ -34,7 +34,7 @@ def test_real_wheel_moves_and_reads_back():
 
 @pytest.mark.skipif(not CAMERA, reason="set SKINLAYERS_CAMERA=1 to test a real camera through gphoto2")
 def test_real_camera_configures_and_captures(tmp_path):
-    from skinlayers.acquire.gphoto import RAW_SUFFIXES, GPhotoCamera  # noqa: PLC0415
+    from skinlayers.acquire.gphoto import RAW_SUFFIXES, GPhotoCamera
 
     config = CameraConfig(model=os.environ.get("SKINLAYERS_CAMERA_MODEL"), port=os.environ.get("SKINLAYERS_CAMERA_PORT"))
     with GPhotoCamera(config) as camera:

@@ -13,7 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from bench_io import out_dir  # noqa: E402
+from bench_io import out_dir
 
 __all__ = ["calibrated_session", "refit"]
 

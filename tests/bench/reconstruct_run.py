@@ -19,7 +19,7 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import torch  # noqa: E402
+import torch
 
 SYNTHETIC = Path(__file__).resolve().parents[1] / "reconstruct" / "synthetic_cubes.py"
 

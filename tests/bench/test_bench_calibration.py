@@ -24,7 +24,7 @@ import torch
 from skinlayers.calibration import CalibrationSettings, calibrate_session
 from skinlayers.calibration import window as window_module
 
-from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import write_csv
 
 pytestmark = pytest.mark.bench
 

@@ -20,8 +20,8 @@ import time
 import pytest
 import torch
 
-from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
-from reconstruct_run import synthetic  # noqa: E402
+from bench_io import write_csv
+from reconstruct_run import synthetic
 
 pytestmark = pytest.mark.bench
 

@@ -25,7 +25,7 @@ from skinlayers.model.illumination import Light
 from skinlayers.model.maps import SkinMaps
 from skinlayers.model.renderer import SkinRenderer
 
-from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import write_csv
 
 pytestmark = pytest.mark.bench
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from bench_io import out_dir, write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import out_dir, write_csv
 
 pytestmark = pytest.mark.bench
 

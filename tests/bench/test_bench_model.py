@@ -29,7 +29,7 @@ from skinlayers.model.tables import build_profile_tables
 from skinlayers.reconstruct import fit_spectra
 from skinlayers.reconstruct.spectra_io import read_spectra_csv
 
-from bench_io import out_dir, write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import out_dir, write_csv
 
 pytestmark = pytest.mark.bench
 

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import pytest
 
-from bench_io import write_csv  # noqa: E402
-from demo_sessions import calibrated_session, refit  # noqa: E402
+from bench_io import write_csv
+from demo_sessions import calibrated_session, refit
 
 pytestmark = pytest.mark.bench
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from bench_io import write_csv  # noqa: E402
-from demo_sessions import calibrated_session, refit  # noqa: E402
+from bench_io import write_csv
+from demo_sessions import calibrated_session, refit
 
 pytestmark = pytest.mark.bench
 

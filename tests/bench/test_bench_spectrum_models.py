@@ -26,7 +26,7 @@ from skinlayers.reconstruct import fit_spectra, select_spectrum_models
 from skinlayers.reconstruct.spectra_io import read_spectra_csv
 from skinlayers.reconstruct.spectrum_models import candidate_label
 
-from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import write_csv
 
 pytestmark = pytest.mark.bench
 

@@ -17,7 +17,7 @@ import time
 import pytest
 import torch
 
-from bench_io import write_csv  # noqa: E402
+from bench_io import write_csv
 
 pytestmark = pytest.mark.bench
 

@@ -23,8 +23,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from bench_io import write_csv  # noqa: E402
-from demo_sessions import calibrated_session, refit  # noqa: E402
+from bench_io import write_csv
+from demo_sessions import calibrated_session, refit
 
 pytestmark = pytest.mark.bench
 

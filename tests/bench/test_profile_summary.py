@@ -3,7 +3,7 @@ py-spy raw profile; runs in the default suite: it is fast)."""
 
 from __future__ import annotations
 
-from profile_summary import parse, summarise  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from profile_summary import parse, summarise
 
 RAW = """\
 <module> (/x/bin/skinlayers:8);demo (/repo/skinlayers/demo.py:221);simulate_session (/repo/skinlayers/demo.py:258);render (/repo/model/renderer.py:10);_symmetric_sums (/repo/model/blur.py:5) 30

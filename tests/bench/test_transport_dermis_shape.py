@@ -17,7 +17,7 @@ import math
 import pytest
 import torch
 
-from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import write_csv
 
 from skinlayers.model import TABLE2, ModelSettings
 from skinlayers.model.fresnel import fresnel_reflectance

@@ -17,10 +17,10 @@ import time
 import pytest
 import torch
 
-from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import write_csv
 
-from skinlayers.model import TABLE2, ModelSettings, SkinParams  # noqa: E402
-from skinlayers.model.transport import TransportRenderer  # noqa: E402
+from skinlayers.model import TABLE2, ModelSettings, SkinParams
+from skinlayers.model.transport import TransportRenderer
 
 pytestmark = pytest.mark.bench
 

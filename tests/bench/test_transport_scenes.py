@@ -35,7 +35,7 @@ import time
 import pytest
 import torch
 
-from bench_io import out_dir, write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import out_dir, write_csv
 
 from skinlayers.model import TABLE2, ModelSettings, SkinParams
 from skinlayers.model.illumination import Light
@@ -318,10 +318,10 @@ def _freckle_rows(transport: TransportRenderer, planes, curves: dict) -> list[di
 
 
 def _figure(curves: dict) -> None:
-    import matplotlib  # noqa: PLC0415
+    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import matplotlib.pyplot as plt
 
     scenes = list(dict.fromkeys(k[0] for k in curves))
     fig, axes = plt.subplots(len(scenes), 3, figsize=(12, 2.8 * len(scenes)), squeeze=False)

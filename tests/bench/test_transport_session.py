@@ -25,7 +25,7 @@ import pytest
 import torch
 import yaml
 
-from bench_io import out_dir, write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import out_dir, write_csv
 
 from skinlayers.acquire.rig import load_rig
 from skinlayers.calibration import calibrate_session

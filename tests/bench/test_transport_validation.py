@@ -24,12 +24,12 @@ import torch
 
 pytest.importorskip("iadpython")
 
-import transport_reference as ref  # noqa: E402 (tests/conftest.py puts tests/model on the path)
-from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+import transport_reference as ref
+from bench_io import write_csv
 
-from skinlayers.model import TABLE2, ModelSettings, SkinModel, SkinParams  # noqa: E402
-from skinlayers.model.radiometry import entry_transmittance  # noqa: E402
-from skinlayers.model.transport import Medium, TransportRenderer, walk  # noqa: E402
+from skinlayers.model import TABLE2, ModelSettings, SkinModel, SkinParams
+from skinlayers.model.radiometry import entry_transmittance
+from skinlayers.model.transport import Medium, TransportRenderer, walk
 
 pytestmark = pytest.mark.bench
 

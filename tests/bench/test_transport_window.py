@@ -18,7 +18,7 @@ import os
 import pytest
 import torch
 
-from bench_io import write_csv  # noqa: E402 (tests/bench/conftest.py puts it on the path)
+from bench_io import write_csv
 
 from skinlayers.model import TABLE2, ModelSettings
 from skinlayers.model.illumination import Light

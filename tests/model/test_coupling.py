@@ -8,7 +8,6 @@ transport does, and DWRR08's exit rule does not.
 from __future__ import annotations
 
 import csv
-import math
 from pathlib import Path
 
 import numpy as np

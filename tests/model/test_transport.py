@@ -23,7 +23,7 @@ import pytest
 
 pytest.importorskip("iadpython")
 
-import transport_reference as ref  # noqa: E402 (tests/conftest.py puts tests/model on the path)
+import transport_reference as ref
 
 BASELINE = Path(__file__).resolve().parents[1] / "data" / "transport_baseline.csv"
 #: Allowed growth of |relative error|, absolute (0.005 = 0.5 percentage points).

@@ -17,13 +17,13 @@ import torch
 
 pytest.importorskip("iadpython")
 
-import transport_reference as ref  # noqa: E402 (tests/conftest.py puts tests/model on the path)
+import transport_reference as ref
 
-from skinlayers.model import TABLE2, ModelSettings, SkinModel, SkinParams  # noqa: E402
-from skinlayers.model.illumination import Light  # noqa: E402
-from skinlayers.model.maps import SkinMaps  # noqa: E402
-from skinlayers.model.radiometry import entry_transmittance  # noqa: E402
-from skinlayers.model.transport import Medium, TransportRenderer, walk  # noqa: E402
+from skinlayers.model import TABLE2, ModelSettings, SkinModel, SkinParams
+from skinlayers.model.illumination import Light
+from skinlayers.model.maps import SkinMaps
+from skinlayers.model.radiometry import entry_transmittance
+from skinlayers.model.transport import Medium, TransportRenderer, walk
 
 #: The 3-standard-error band every comparison must fall in.
 Z = 3.0

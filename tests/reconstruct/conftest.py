@@ -23,7 +23,7 @@ from pathlib import Path
 # torch's OpenMP starts after this line (running this folder alone).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import pytest  # noqa: E402
+import pytest
 
 _PATH = Path(__file__).resolve().with_name("synthetic_cubes.py")
 

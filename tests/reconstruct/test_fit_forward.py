@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from skinlayers.model import PARAMETER_NAMES, SkinParams
+from skinlayers.model import PARAMETER_NAMES
 from skinlayers.model.renderer import SkinRenderer
 from skinlayers.reconstruct.checks import check_cube
 from skinlayers.reconstruct.fidelity import (
