@@ -52,6 +52,33 @@ def fit_spectrum(
     Example: skinlayers fit-spectrum tests/data/nist_skin_reflectance_forearm_avg_370-830nm.csv --json
     """
     settings = load_model_settings(config)
+    lo, hi = _spectrum_options(wavelength_range, method, noise, model_choice)
+    candidates, free_scale = spectrum_candidates(model_choice, free_scale, settings.profiles)
+    if plot is not None:  # before the fit: a figure it could not write is refused now, not after it
+        check_outputs(plot.parent, [plot.name], force=force, what="figure")
+    data = read_spectra_csv(file).select(lo, hi)
+    start = time.perf_counter()
+    with _spectra_progress(len(candidates), "models") as progress:
+        selection = select_spectrum_models(
+            data.reflectance, data.wavelength_nm, SkinModel(settings), candidates=candidates, free_scale=free_scale,
+            specular_included=specular_included, noise=noise, method=method, progress=progress,
+        )
+    seconds = time.perf_counter() - start
+    spectra = _spectra_entries(data.names, selection, free_scale)
+    summary = _spectra_summary(data, selection, {"free_scale": free_scale, "specular_included": specular_included,
+                                                 "method": method, "model": model_choice}, seconds)
+    if plot is not None:
+        _plot_fits(data.names, data.wavelength_nm, data.reflectance, selection.fit.fitted, selection.fit.rms_residual, plot, force)
+    if as_json:
+        typer.echo(json.dumps({"spectra": spectra, "summary": summary}))
+        return
+    _print_spectra(file, spectra, summary, free_scale, (lo, hi), len(selection.candidates) > 1)
+    if plot is not None:
+        typer.echo(f"figure: {plot}")
+
+
+def _spectrum_options(wavelength_range: str, method: str, noise: float | None, model_choice: str) -> tuple[float, float]:
+    """``fit-spectrum``'s options checked; the wavelength range ``(lo, hi)`` nm."""
     lo_hi = wavelength_range.split(":")
     try:
         lo, hi = (float(v) for v in lo_hi)
@@ -65,25 +92,18 @@ def fit_spectrum(
         raise InputError(f"--noise {noise}: must be a positive reflectance (e.g. 0.003)")
     if model_choice not in MODEL_CHOICES and not Path(model_choice).is_file():
         raise InputError(f"--model {model_choice!r}: choose one of {', '.join(MODEL_CHOICES)}, or give a YAML file")
-    candidates, free_scale = spectrum_candidates(model_choice, free_scale, settings.profiles)
-    if plot is not None:  # before the fit: a figure it could not write is refused now, not after it
-        check_outputs(plot.parent, [plot.name], force=force, what="figure")
-    data = read_spectra_csv(file).select(lo, hi)
-    start = time.perf_counter()
-    with _spectra_progress(len(candidates), "models") as progress:
-        selection = select_spectrum_models(
-            data.reflectance, data.wavelength_nm, SkinModel(settings), candidates=candidates, free_scale=free_scale,
-            specular_included=specular_included, noise=noise, method=method, progress=progress,
-        )
-    seconds = time.perf_counter() - start
+    return lo, hi
+
+
+def _spectra_entries(names: list[str], selection, free_scale: bool) -> list[dict]:
+    """Per spectrum: its parameters, residual, bounds reached, convergence and model (the JSON's ``spectra``)."""
     fit = selection.fit
-    rms = fit.rms_residual
     spectra = []
-    for b, name in enumerate(data.names):
+    for b, name in enumerate(names):
         entry = {
             "name": name,
             "params": {n: float(getattr(fit.params, n)[b]) for n in PARAMETER_NAMES},
-            "rms_residual": float(rms[b]),
+            "rms_residual": float(fit.rms_residual[b]),
             "at_bound": fit.at_bound[b],
             "converged": bool(fit.converged[b]),
             "model": _model_entry(selection, b),
@@ -91,27 +111,29 @@ def fit_spectrum(
         if free_scale:
             entry["scale"] = float(fit.scale[b])
         spectra.append(entry)
-    freed_counts = {candidate_label(c): int((selection.choice == j).sum()) for j, c in enumerate(selection.candidates)}
-    summary = {
-        "count": len(spectra),
+    return spectra
+
+
+def _spectra_summary(data, selection, options: dict, seconds: float) -> dict:
+    """What the fit of every spectrum says at once: residuals, samples, the options, the models chosen."""
+    rms = selection.fit.rms_residual
+    return {
+        "count": len(data.names),
         "median_rms_residual": float(rms.median()),
         "worst_rms_residual": float(rms.max()),
         "worst": data.names[int(rms.argmax())],
         "wavelength_range_nm": [float(data.wavelength_nm[0]), float(data.wavelength_nm[-1])],
         "samples": int(data.wavelength_nm.numel()),
-        "free_scale": free_scale,
-        "specular_included": specular_included,
-        "method": method,
-        "model": model_choice,
+        **options,
         "criterion": selection.criterion_name,
-        "chosen": freed_counts,
+        "chosen": {candidate_label(c): int((selection.choice == j).sum()) for j, c in enumerate(selection.candidates)},
         "seconds": round(seconds, 3),
     }
-    if plot is not None:
-        _plot_fits(data.names, data.wavelength_nm, data.reflectance, fit.fitted, rms, plot, force)
-    if as_json:
-        typer.echo(json.dumps({"spectra": spectra, "summary": summary}))
-        return
+
+
+def _print_spectra(file: Path, spectra: list[dict], summary: dict, free_scale: bool, lo_hi: tuple[float, float],
+                   several_models: bool) -> None:
+    """The fit-spectrum table (the first ``_TABLE_ROWS`` spectra) and its summary lines."""
     from rich.console import Console  # noqa: PLC0415
     from rich.table import Table  # noqa: PLC0415
 
@@ -136,16 +158,15 @@ def fit_spectrum(
     console.print(table)
     if len(spectra) > _TABLE_ROWS:
         console.print(f"… and {len(spectra) - _TABLE_ROWS} more spectra (--json lists every one)")
+    lo, hi = lo_hi
     console.print(
         f"{summary['count']} spectra, {summary['samples']} samples each ({lo:g}–{hi:g} nm): RMS residual median "
         f"{summary['median_rms_residual']:.4f}, worst {summary['worst_rms_residual']:.4f} ({summary['worst']}); "
-        f"{seconds:.2f} s"
+        f"{summary['seconds']:.2f} s"
     )
-    if len(selection.candidates) > 1:
-        counts = ", ".join(f"{label} {n}" for label, n in freed_counts.items() if n)
-        console.print(f"models chosen ({selection.criterion_name}): {counts} (--json says why, per spectrum)")
-    if plot is not None:
-        console.print(f"figure: {plot}")
+    if several_models:
+        counts = ", ".join(f"{label} {n}" for label, n in summary["chosen"].items() if n)
+        console.print(f"models chosen ({summary['criterion']}): {counts} (--json says why, per spectrum)")
 
 
 #: ``reconstruct --model`` → the fit settings it sets (over --config's): DWRR08's fit is the renderer

@@ -175,117 +175,149 @@ def fit_cube(
     cache_dir: str | None = None,
 ) -> MapFit:
     """Fit the five maps and the scale to ``cube``; see the module docstring."""
-    settings = settings or FitSettings()
-    dev = _resolve_device(device)
-    dtype = torch.float64 if settings.dtype == "float64" else torch.float32
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    checks = check_cube(cube, settings.saturated_reflectance, settings.dead_band_reflectance)
-    _require_memory(cube, settings, dtype, dev)
-    view, view_source = view_angle_of(cube, settings)
-    fwhm, fwhm_source = band_fwhm_of(cube, settings)
-    renderer = renderer or SkinRenderer(settings.model, cache_dir)
-    wl = cube.wavelength_nm.to(torch.float64)
-    say = progress or (lambda event: None)
-    renderer.model.tables(wl, progress=lambda j, n: say(FitEvent("tables", j, n)))
-    target = cube.reflectance.to(device=dev, dtype=dtype)
-    hairs = _hairs(cube, checks)
-    levels = pyramid(target, checks.fit_mask.to(dev), cube.mm_per_pixel, settings.coarsest_px)
-    pixels = tuple(lv.shape[0] * lv.shape[1] for lv in levels)
-    counter = RenderCounter()
-    records: list[dict] = []
-    history: list[tuple[float, float, int]] = []
-    cells = settings.cells
+    run = CubeFit(cube, settings or FitSettings(), device=device, renderer=renderer, progress=progress, cache_dir=cache_dir)
+    problem, x, choice = run.start()
+    result, forward, problem, x = run.fit_levels(problem, x)
+    absorber, result, x = run.fit_absorbers(problem, result, forward, x)
+    return run.finish(problem, result, x, forward, choice, absorber)
 
-    def level_problem(level, cells: dict[str, float], light_factor: torch.Tensor | None = None) -> LevelProblem:
-        kw = dict(view_angle_deg=view, border_mm=settings.border_mm, band_fwhm_nm=fwhm, map_cell_mm=cells, counter=counter)
+
+class CubeFit:
+    """One map fit's state and its steps (``fit_cube`` runs them in order): the cube's checks and
+    pyramid, the renderer and its render count, the records of every level fitted, the loss history and
+    the robust weights carried from one level to the next, and the map grids in use (``cells``)."""
+
+    def __init__(self, cube: Cube, settings: FitSettings, *, device=None, renderer: SkinRenderer | None = None,
+                 progress: Progress | None = None, cache_dir: str | None = None) -> None:
+        self.cube, self.settings = cube, settings
+        self.device = _resolve_device(device)
+        self.dtype = torch.float64 if settings.dtype == "float64" else torch.float32
+        self.cpu0, self.wall0 = time.process_time(), time.perf_counter()
+        self.checks = check_cube(cube, settings.saturated_reflectance, settings.dead_band_reflectance)
+        _require_memory(cube, settings, self.dtype, self.device)
+        self.view, self.view_source = view_angle_of(cube, settings)
+        self.fwhm, self.fwhm_source = band_fwhm_of(cube, settings)
+        self.renderer = renderer or SkinRenderer(settings.model, cache_dir)
+        self.wl = cube.wavelength_nm.to(torch.float64)
+        self.say = progress or (lambda event: None)
+        self.renderer.model.tables(self.wl, progress=lambda j, n: self.say(FitEvent("tables", j, n)))
+        self.target = cube.reflectance.to(device=self.device, dtype=self.dtype)
+        self.hairs = _hairs(cube, self.checks)
+        self.levels = pyramid(self.target, self.checks.fit_mask.to(self.device), cube.mm_per_pixel, settings.coarsest_px)
+        self.pixels = tuple(lv.shape[0] * lv.shape[1] for lv in self.levels)
+        self.counter = RenderCounter()
+        self.records: list[dict] = []
+        self.history: list[tuple[float, float, int]] = []
+        self.cells = settings.cells
+        self.carried: dict = {}  # forward model → the last level's (shape, loss pixels, robust weights)
+
+    # -- the steps -------------------------------------------------------------------------------
+    def start(self) -> tuple[LevelProblem, torch.Tensor | None, object]:
+        """The start, on the coarsest level, where it is first needed (with map_grids: auto, the grids
+        from this cube's information; forward: auto's homogeneous detour starts from the cube's mean
+        spectrum and, on skin the renderer is not needed for, never needs the per-pixel start)."""
+        problem = self.problem(self.levels[0])
+        self.say(FitEvent("start", 0, len(self.levels), pixels=self.pixels))
+        x, choice = None, None
+        if self.settings.map_grids == "auto":
+            x = STARTS[self.settings.start](problem, dtype=self.dtype, device=self.device)
+            choice = choose_map_grids(problem, x, self.noise_at(self.levels[0]), self.cells, self.cube.mm_per_pixel)
+            self.cells = choice.cells_mm
+            problem = self.problem(self.levels[0])
+            x = _on_nodes(problem, x)
+        return problem, x, choice
+
+    def fit_levels(self, problem: LevelProblem, x) -> tuple[OptimResult, ForwardChoice | None, LevelProblem, torch.Tensor]:
+        """Coarse to fine: the homogeneous detour where the settings allow and it holds, else the renderer's
+        fit from the start. Returns the finest level's result, the forward choice, its problem and the maps
+        ``(N_PARAMS, H, W)`` (the renderer's with masked pixels following the nearest visible one)."""
+        log_scale = torch.zeros((), dtype=self.dtype, device=self.device)
+        result, forward = None, None
+        if self.settings.forward != "heterogeneous":
+            x_start = x if x is not None else mean_spectrum_start(problem, dtype=self.dtype, device=self.device)
+            result, forward, fitted_cells = _homogeneous_fit(self, problem, x_start, log_scale, self.settings.forward)
+            if result is not None:
+                self.cells = fitted_cells
+        if result is not None:
+            return result, forward, self.problem(self.levels[-1]), result.x
+        if x is None:
+            x = _on_nodes(problem, STARTS[self.settings.start](problem, dtype=self.dtype, device=self.device))
+        for i, level in enumerate(self.levels):
+            if i:
+                problem = self.problem(level)
+                x = upsample(x, level.shape)
+            result = self.fit_level(i, problem, x, log_scale, "heterogeneous")
+            x, log_scale = extend(result.x, problem.index), result.log_scale
+        return result, forward, problem, x
+
+    def fit_absorbers(self, problem: LevelProblem, result: OptimResult, forward: ForwardChoice | None,
+                      x: torch.Tensor) -> tuple[AbsorberFit | None, OptimResult, torch.Tensor]:
+        """The grey absorbance where the settings ask for it (``_absorber_fit``), with the maps after it."""
+        if self.settings.absorbers != "auto":
+            return None, result, x
+        absorber, result = _absorber_fit(self, problem, result, len(self.levels) - 1, forward)
+        return absorber, result, extend(result.x, problem.index)
+
+    def finish(self, problem: LevelProblem, result: OptimResult, x: torch.Tensor, forward: ForwardChoice | None, choice,
+               absorber: AbsorberFit | None) -> MapFit:
+        """The maps, their σ, flags and notes (``_finish``), with this fit's records."""
+        log_scale = result.log_scale
+        self.say(FitEvent("final", len(self.levels) - 1, len(self.levels), pixels=self.pixels))
+        renderer_fit = forward is None or forward.chosen == "heterogeneous"
+        if forward is not None:
+            self.checks.warn(forward.model_notes())
+        out = _finish(problem, result, x, log_scale, self.checks, self.settings, self.cube.mm_per_pixel, renderer_fit, self.hairs)
+        return MapFit(
+            **out, checks=self.checks, wavelength_nm=self.wl, view_angle_deg=self.view, view_angle_source=self.view_source,
+            band_fwhm_nm=self.fwhm, band_fwhm_source=self.fwhm_source, levels=self.records,
+            counter=self.counter, cpu_s=time.process_time() - self.cpu0, wall_s=time.perf_counter() - self.wall0,
+            history=self.history, grid_choice=choice.as_dict() if choice else None,
+            forward_choice=forward.as_dict() if forward else None,
+            absorbers=absorber.as_dict() if absorber else None,
+        )
+
+    # -- what the steps share ----------------------------------------------------------------------
+    def problem(self, level, light_factor: torch.Tensor | None = None, cells: dict[str, float] | None = None) -> LevelProblem:
+        """The level's problem on the map grids in use (or ``cells``); with a light factor, the
+        homogeneous model's."""
+        kw = dict(view_angle_deg=self.view, border_mm=self.settings.border_mm, band_fwhm_nm=self.fwhm,
+                  map_cell_mm=self.cells if cells is None else cells, counter=self.counter)
         if light_factor is None:
-            return LevelProblem(renderer, level, wl, checks.bands_used, **kw)
-        return HomogeneousProblem(renderer, level, wl, checks.bands_used, light_factor=light_factor, **kw)
+            return LevelProblem(self.renderer, level, self.wl, self.checks.bands_used, **kw)
+        return HomogeneousProblem(self.renderer, level, self.wl, self.checks.bands_used, light_factor=light_factor, **kw)
 
-    def noise_at(level) -> torch.Tensor:  # the cube's own per band (L,); each 2×2 mean halves white noise's σ
-        return band_noise(target, checks.fit_mask.to(dev)) * (cube.mm_per_pixel / level.mm_per_pixel)
+    def noise_at(self, level) -> torch.Tensor:
+        """The cube's own noise per band ``(L,)`` at a level: each 2×2 mean halves white noise's σ."""
+        return band_noise(self.target, self.checks.fit_mask.to(self.device)) * (self.cube.mm_per_pixel / level.mm_per_pixel)
 
-    carried: dict = {}  # forward model → the last level's (shape, loss pixels, robust weights)
-
-    def fit_level(i: int, problem: LevelProblem, x, log_scale, forward: str, method=None) -> OptimResult:
-        c0, f0, b0 = time.process_time(), counter.forward, counter.backward
+    def fit_level(self, i: int, problem: LevelProblem, x, log_scale, forward: str, method=None) -> OptimResult:
+        """One level's fit and its robust refits, recorded (``records``, ``history``)."""
+        c0, f0, b0 = time.process_time(), self.counter.forward, self.counter.backward
         passes: list[int] = []
         result = None
-        n_pass = 1 + settings.robust_passes
-        prev = carried.get(forward)
-        if (settings.robust_finest == "carry" and i == len(levels) - 1 and prev is not None and prev[0] != problem.level.shape
-                and problem.pixel_weight is None):
+        n_pass = 1 + self.settings.robust_passes
+        prev = self.carried.get(forward)
+        if (self.settings.robust_finest == "carry" and i == len(self.levels) - 1 and prev is not None
+                and prev[0] != problem.level.shape and problem.pixel_weight is None):
             # the finest level weighted from the start by the level above's robust weights: one pass instead of two
             problem.pixel_weight = _carry_weights(prev, problem)
             n_pass = 1
         for k in range(n_pass):  # the fit, then its robust refits
             if k:
-                problem.pixel_weight = robust_weights(pixel_rms(problem, result.evaluation), settings.robust_scale)
+                problem.pixel_weight = robust_weights(pixel_rms(problem, result.evaluation), self.settings.robust_scale)
                 x, log_scale = result.x, result.log_scale
-            result = (method or METHODS[settings.method])(
-                problem, x, log_scale, settings,
-                lambda it, loss, i=i, done=sum(passes): say(FitEvent("fit", i, len(levels), done + it, loss, pixels)),
+            result = (method or METHODS[self.settings.method])(
+                problem, x, log_scale, self.settings,
+                lambda it, loss, i=i, done=sum(passes): self.say(FitEvent("fit", i, len(self.levels), done + it, loss, self.pixels)),
             )
             passes.append(result.iterations)
-            history.extend((t - cpu0, loss, i) for t, loss in result.history[1 if k else 0:])
+            self.history.extend((t - self.cpu0, loss, i) for t, loss in result.history[1 if k else 0:])
         if problem.pixel_weight is not None:
-            carried[forward] = (problem.level.shape, problem.pixels, problem.pixel_weight)
-        records.append({"forward": forward, **_level_record(problem, result, passes, time.process_time() - c0,
-                                                            counter.forward - f0, counter.backward - b0)})
-        say(FitEvent("level", i, len(levels), sum(passes), result.evaluation.loss, pixels))
+            self.carried[forward] = (problem.level.shape, problem.pixels, problem.pixel_weight)
+        self.records.append({"forward": forward, **_level_record(problem, result, passes, time.process_time() - c0,
+                                                                 self.counter.forward - f0, self.counter.backward - b0)})
+        self.say(FitEvent("level", i, len(self.levels), sum(passes), result.evaluation.loss, self.pixels))
         return result
-
-    # the start, on the coarsest level, where it is first needed (with map_grids: auto, the grids from this
-    # cube's information; forward: auto's homogeneous detour starts from the cube's mean spectrum and,
-    # on skin the renderer is not needed for, never needs the per-pixel start)
-    problem = level_problem(levels[0], cells)
-    say(FitEvent("start", 0, len(levels), pixels=pixels))
-    x = None
-    choice = None
-    if settings.map_grids == "auto":
-        x = STARTS[settings.start](problem, dtype=dtype, device=dev)
-        choice = choose_map_grids(problem, x, noise_at(levels[0]), cells, cube.mm_per_pixel)
-        cells = choice.cells_mm
-        problem = level_problem(levels[0], cells)
-        x = _on_nodes(problem, x)
-    log_scale = torch.zeros((), dtype=dtype, device=dev)
-
-    result, forward = None, None
-    if settings.forward != "heterogeneous":
-        x_start = x if x is not None else mean_spectrum_start(problem, dtype=dtype, device=dev)
-        result, forward, fitted_cells = _homogeneous_fit(levels, problem, x_start, log_scale, cells, settings.forward,
-                                                         level_problem, noise_at, fit_level)
-        if result is not None:
-            cells = fitted_cells
-    if result is None:  # the renderer's fit, from the start
-        if x is None:
-            x = _on_nodes(problem, STARTS[settings.start](problem, dtype=dtype, device=dev))
-        for i, level in enumerate(levels):
-            if i:
-                problem = level_problem(level, cells)
-                x = upsample(x, level.shape)
-            result = fit_level(i, problem, x, log_scale, "heterogeneous")
-            x, log_scale = extend(result.x, problem.index), result.log_scale
-    else:
-        problem = level_problem(levels[-1], cells)
-        x, log_scale = result.x, result.log_scale
-    absorber = None
-    if settings.absorbers == "auto":
-        absorber, result = _absorber_fit(problem, result, len(levels) - 1, noise_at, settings, forward, fit_level)
-        x, log_scale = extend(result.x, problem.index), result.log_scale
-    say(FitEvent("final", len(levels) - 1, len(levels), pixels=pixels))
-    renderer_fit = forward is None or forward.chosen == "heterogeneous"
-    if forward is not None:
-        checks.warn(forward.model_notes())
-    out = _finish(problem, result, x, log_scale, checks, settings, cube.mm_per_pixel, renderer_fit, hairs)
-    return MapFit(
-        **out, checks=checks, wavelength_nm=wl, view_angle_deg=view, view_angle_source=view_source, band_fwhm_nm=fwhm,
-        band_fwhm_source=fwhm_source, levels=records,
-        counter=counter, cpu_s=time.process_time() - cpu0, wall_s=time.perf_counter() - wall0, history=history,
-        grid_choice=choice.as_dict() if choice else None,
-        forward_choice=forward.as_dict() if forward else None,
-        absorbers=absorber.as_dict() if absorber else None,
-    )
 
 
 def _on_nodes(problem: LevelProblem, x: torch.Tensor) -> torch.Tensor:
@@ -296,8 +328,8 @@ def _on_nodes(problem: LevelProblem, x: torch.Tensor) -> torch.Tensor:
     return problem.layout.assemble(x, problem.layout.project(x, clip_quantile=0.25))
 
 
-def _absorber_fit(problem: LevelProblem, result: OptimResult, i: int, noise_at, settings: FitSettings,
-                  forward: ForwardChoice | None, fit_level) -> tuple[AbsorberFit | None, OptimResult]:
+def _absorber_fit(run: CubeFit, problem: LevelProblem, result: OptimResult, i: int,
+                  forward: ForwardChoice | None) -> tuple[AbsorberFit | None, OptimResult]:
     """The grey absorbance where the finest level's residual asks for it (``absorbers.py``), and the finest
     level refitted with it held; ``result`` unchanged where nothing was kept."""
     shape = problem.level.shape
@@ -305,14 +337,14 @@ def _absorber_fit(problem: LevelProblem, result: OptimResult, i: int, noise_at, 
     if forward is not None and forward.chosen != "heterogeneous":
         return nothing("not considered: the homogeneous model was kept (no neighbour's shading stood out)"), result
     try:
-        noise = noise_at(problem.level)
+        noise = run.noise_at(problem.level)
     except ValueError as err:
         return nothing(f"not considered: the cube's noise cannot be measured ({err})"), result
-    candidates = candidate_rows(problem, pixel_rms(problem, result.evaluation), settings.high_residual_factor)
+    candidates = candidate_rows(problem, pixel_rms(problem, result.evaluation), run.settings.high_residual_factor)
     found, x = fit_grey_absorbance(problem, result.x, result.log_scale, noise, candidates)
     if not found.kept:
         return found, result
-    return found, fit_level(i, problem, x, result.log_scale, "heterogeneous")
+    return found, run.fit_level(i, problem, x, result.log_scale, "heterogeneous")
 
 
 def _carry_weights(prev, problem: LevelProblem) -> torch.Tensor:
@@ -324,7 +356,7 @@ def _carry_weights(prev, problem: LevelProblem) -> torch.Tensor:
     return up[problem.pixels]
 
 
-def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting: str, level_problem, noise_at, fit_level):
+def _homogeneous_fit(run: CubeFit, problem: LevelProblem, x, log_scale, setting: str):
     """Every level fitted with each pixel's homogeneous model under the window's light (``fidelity``).
     The coarsest level's light factor is re-made from the skin it finds (``LIGHT_FACTOR_PASSES``), the
     finest level's by the Fourier-domain combination (``uniform_light_factor``: no render). With
@@ -339,6 +371,7 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
     Returns the finest level's result (its evaluation the renderer's unless the skin is uniform), the
     choice and the map grids it fitted, or ``(None, choice, cells)`` where a check fails and the
     renderer's fit must run."""
+    levels, cells = run.levels, run.cells
     wall0 = time.perf_counter()
     choice = ForwardChoice(setting, "homogeneous")
     last = len(levels) - 1
@@ -350,27 +383,27 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
 
     if setting == "auto":
         try:
-            noise_at(levels[last])
+            run.noise_at(levels[last])
         except ValueError as err:  # too few pixels to tell the noise: nothing to weigh the cross-talk against
             choice.note = f"the cube's noise cannot be measured ({err})"
             return renderer_needed()
 
     def check(i: int, x_at, scale_at, factor_at):
-        rendered = level_problem(levels[i], cells)
-        found, evaluation = crosstalk_check(i, rendered, level_problem(levels[i], cells, factor_at), x_at, scale_at,
-                                            noise_at(levels[i]))
+        rendered = run.problem(levels[i], cells=cells)
+        found, evaluation = crosstalk_check(i, rendered, run.problem(levels[i], factor_at, cells=cells), x_at, scale_at,
+                                            run.noise_at(levels[i]))
         choice.checks.append(found)
         return found.passed, evaluation
 
     skin = x  # the light factor's skin: the start's, then the level's uniform fits (its mean spectrum)
     # the factors toward it need no render (close to one here: docs/reconstruct.md, "From reconstruct/fit.py")
     for _ in range(LIGHT_FACTOR_PASSES - 1):
-        hom = level_problem(levels[0], cells, uniform_light_factor(problem, skin))
-        uniform_fit = fit_level(0, hom, skin, log_scale, "homogeneous", fit_uniform)
+        hom = run.problem(levels[0], uniform_light_factor(problem, skin), cells=cells)
+        uniform_fit = run.fit_level(0, hom, skin, log_scale, "homogeneous", fit_uniform)
         skin, log_scale = uniform_fit.x, uniform_fit.log_scale
     factor = window_light_factor(problem, skin)
-    hom = level_problem(levels[0], cells, factor)
-    result = fit_level(0, hom, skin, log_scale, "homogeneous")  # every pixel, from the uniform skin
+    hom = run.problem(levels[0], factor, cells=cells)
+    result = run.fit_level(0, hom, skin, log_scale, "homogeneous")  # every pixel, from the uniform skin
     x, log_scale = extend(result.x, hom.index), result.log_scale
     uniform = False
     if setting == "auto":
@@ -381,9 +414,9 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
         uniform = choice.uniform
         cells = {**cells, **dict.fromkeys(choice.constant_maps, PATCH_MM)}  # maps with no structure: one value
         if choice.constant_maps and not uniform:  # refitted so on this level
-            hom = level_problem(levels[0], cells, factor)
+            hom = run.problem(levels[0], factor, cells=cells)
             x = hom.layout.assemble(x, hom.layout.project(x))
-            result = fit_level(0, hom, x, log_scale, "homogeneous")
+            result = run.fit_level(0, hom, x, log_scale, "homogeneous")
             x, log_scale = extend(result.x, hom.index), result.log_scale
     if uniform:
         # five values, which every level determines alike: the finest fitted at once as five unknowns,
@@ -391,38 +424,37 @@ def _homogeneous_fit(levels, problem: LevelProblem, x, log_scale, cells, setting
         # homogeneous model of uniform skin under the window's light is the render (Eq. 3), so the fit's
         # own evaluation is the renderer's
         x = upsample(x, levels[last].shape)
-        fine = level_problem(levels[last], cells)
+        fine = run.problem(levels[last], cells=cells)
         factor = uniform_light_factor(fine, x) if last > 0 else window_light_factor(fine, x)
-        result = fit_level(last, level_problem(levels[last], cells, factor), x, log_scale, "homogeneous", fit_uniform)
+        result = run.fit_level(last, run.problem(levels[last], factor, cells=cells), x, log_scale, "homogeneous", fit_uniform)
         choice.homogeneous_wall_s = time.perf_counter() - wall0
         return result, choice, cells
     if last > 0:
-        # the window's edges fall off within a fraction of a millimetre: the finest level's factor is its
-        # own (an upsampled coarse one is off at the edge pixels: docs/reconstruct.md, "From
-        # reconstruct/fit.py"), the levels between
-        # take its area means
+        # the window's edges fall off within a fraction of a millimetre: the finest level's factor is its own (an
+        # upsampled coarse one is off at the edge pixels: docs/reconstruct.md, "From reconstruct/fit.py"), the
+        # levels between take its area means
         x_fine = upsample(x, levels[last].shape)
-        factor = uniform_light_factor(level_problem(levels[last], cells), x_fine)
+        factor = uniform_light_factor(run.problem(levels[last], cells=cells), x_fine)
         if setting == "auto":
             passed, _ = check(last, x_fine, log_scale, factor)
             if not passed:
                 return renderer_needed()
     for i in range(1, len(levels)):
         x = upsample(x, levels[i].shape)
-        hom = level_problem(levels[i], cells, F.interpolate(factor[None], size=levels[i].shape, mode="area")[0])
-        result = fit_level(i, hom, x, log_scale, "homogeneous")
+        hom = run.problem(levels[i], F.interpolate(factor[None], size=levels[i].shape, mode="area")[0], cells=cells)
+        result = run.fit_level(i, hom, x, log_scale, "homogeneous")
         x, log_scale = extend(result.x, hom.index), result.log_scale
     try:
         # the residual, flags and σ are the renderer's; with the homogeneous model imposed, the same render
         # tells how far that model is from it at these maps (the cross-talk it leaves out: a warning)
-        noise = noise_at(levels[last]) if setting == "homogeneous" else None
+        noise = run.noise_at(levels[last]) if setting == "homogeneous" else None
     except ValueError:
         noise = None
     if noise is not None:
-        found, evaluation = crosstalk_check(last, level_problem(levels[last], cells), hom, x, log_scale, noise)
+        found, evaluation = crosstalk_check(last, run.problem(levels[last], cells=cells), hom, x, log_scale, noise)
         choice.checks.append(found)
     else:
-        evaluation = level_problem(levels[last], cells).evaluate(x, log_scale)
+        evaluation = run.problem(levels[last], cells=cells).evaluate(x, log_scale)
     choice.homogeneous_wall_s = time.perf_counter() - wall0
     return OptimResult(x, log_scale, evaluation, result.iterations, result.converged, result.history), choice, cells
 

@@ -208,21 +208,7 @@ def demo(
     """
     import yaml  # noqa: PLC0415
 
-    from .acquire.simulation_settings import truth_overrides  # noqa: PLC0415
-
-    if size < 16 or size % 8:
-        raise InputError(f"--size {size}: expected a multiple of 8, at least 16 (e.g. 64, 128, 256)")
-    if device not in ("cpu", "cuda", "auto"):
-        raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
-    truth = truth_overrides(physics, photons)
-    if scene is not None:  # a bad scene file is refused before any folder is made
-        from .acquire.scene import load_scene  # noqa: PLC0415
-
-        load_scene(scene)
-    if out is not None:
-        refuse_inside_session(out, "demo")
-    if out is not None and out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(f"{out}: exists and is not empty; the demo writes into a fresh folder")
+    truth = _checked_options(out, size, device, scene, physics, photons)
     folder = out if out is not None else fresh_folder(Path(DEFAULT_FOLDER))
     folder.mkdir(parents=True, exist_ok=True)
     session, calibrated, reconstruction = folder / "session", folder / "calibrated", folder / "reconstruction"
@@ -252,11 +238,37 @@ def demo(
     (folder / "accuracy.json").write_text(json.dumps(accuracy, indent=2))
     _figure(session, reconstruction, folder / "truth_vs_fit.png")
     _print_accuracy(accuracy)
+    _print_folder(folder, times)
+
+
+def _checked_options(out: Path | None, size: int, device: str, scene: Path | None, physics: str,
+                     photons: int | None) -> dict:
+    """The demo's options checked before any folder is made; the simulation's truth overrides."""
+    from .acquire.simulation_settings import truth_overrides  # noqa: PLC0415
+
+    if size < 16 or size % 8:
+        raise InputError(f"--size {size}: expected a multiple of 8, at least 16 (e.g. 64, 128, 256)")
+    if device not in ("cpu", "cuda", "auto"):
+        raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
+    truth = truth_overrides(physics, photons)
+    if scene is not None:  # a bad scene file is refused before any folder is made
+        from .acquire.scene import load_scene  # noqa: PLC0415
+
+        load_scene(scene)
+    if out is not None:
+        refuse_inside_session(out, "demo")
+    if out is not None and out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"{out}: exists and is not empty; the demo writes into a fresh folder")
+    return truth
+
+
+def _print_folder(folder: Path, times: dict[str, float]) -> None:
+    """Where the demo wrote what, and each step's time."""
     typer.echo("")
     typer.echo(f"demo folder:    {folder}")
-    typer.echo(f"  session:      {session}   (raw DNG frames, manifest.json, truth/)")
-    typer.echo(f"  cube:         {calibrated / CUBE_NAME}   (+ calibration.json, contact_sheet.png)")
-    typer.echo(f"  maps:         {reconstruction / 'maps.exr'}   (+ fit.json, report.png)")
+    typer.echo(f"  session:      {folder / 'session'}   (raw DNG frames, manifest.json, truth/)")
+    typer.echo(f"  cube:         {folder / 'calibrated' / CUBE_NAME}   (+ calibration.json, contact_sheet.png)")
+    typer.echo(f"  maps:         {folder / 'reconstruction' / 'maps.exr'}   (+ fit.json, report.png)")
     typer.echo(f"  accuracy:     {folder / 'accuracy.json'}, {folder / 'truth_vs_fit.png'}")
     typer.echo("times: " + ", ".join(f"{k[:-2]} {v:.0f} s" for k, v in times.items()))
 
