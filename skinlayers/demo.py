@@ -108,17 +108,12 @@ def map_errors(truth, fit, keep) -> dict:
     """Per map, the fit's median error against the truth over the ``keep`` pixels ``(H, W)`` of the fit's
     grid (the truth ``SkinMaps`` box-averaged onto it): relative, β_m absolute; the truth's and the fit's
     medians."""
-    import torch.nn.functional as F  # noqa: PLC0415
-
     from .model import PARAMETER_NAMES  # noqa: PLC0415
 
-    k = truth.shape[-1] // fit.shape[-1]
     keep = keep.to("cpu")
     out = {}
     for name in PARAMETER_NAMES:
-        t = getattr(truth, name)[None].double().cpu()
-        t = (F.avg_pool2d(t, k) if k > 1 else t)[0, 0]
-        f = getattr(fit, name)[0].double().cpu()
+        t, f = _on_fit_grid(truth, fit, name)
         err = (f - t)[keep]
         relative = name != "beta_m"
         value = (err.abs() / t[keep].clamp_min(1e-12)).median() if relative else err.abs().median()
@@ -131,20 +126,24 @@ def sigma_coverage(truth, fit, sigma, pixels, names) -> dict[str, float]:
     """Per map of ``names``, the share of ``pixels`` ``(H, W)`` bool of the fit's grid where the truth
     (``SkinMaps``, box-averaged onto that grid) lies within 2σ of the fit; ``sigma`` ``(N_PARAMS, H, W)``
     in ``PARAMETER_NAMES`` order."""
-    import torch.nn.functional as F  # noqa: PLC0415
-
     from .model import PARAMETER_NAMES  # noqa: PLC0415
 
-    k = truth.shape[-1] // fit.shape[-1]
     pixels = pixels.to("cpu")
     out = {}
     for name in names:
-        t = getattr(truth, name)[None].double().cpu()
-        t = (F.avg_pool2d(t, k) if k > 1 else t)[0, 0]
-        f = getattr(fit, name)[0].double().cpu()
+        t, f = _on_fit_grid(truth, fit, name)
         within = (f - t).abs() <= 2 * sigma[PARAMETER_NAMES.index(name)].double().cpu()
         out[name] = float(within[pixels].double().mean())
     return out
+
+
+def _on_fit_grid(truth, fit, name: str):
+    """One map of the truth ``SkinMaps`` box-averaged onto the fit's grid, and the fit's, ``(H, W)`` float64 on the CPU."""
+    import torch.nn.functional as F  # noqa: PLC0415
+
+    k = truth.shape[-1] // fit.shape[-1]
+    t = getattr(truth, name)[None].double().cpu()
+    return (F.avg_pool2d(t, k) if k > 1 else t)[0, 0], getattr(fit, name)[0].double().cpu()
 
 
 def _figure(session: Path, reconstruction: Path, path: Path) -> None:
