@@ -514,28 +514,8 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     residual = image - problem.level.target
     residual_rms = torch.sqrt((residual[used] ** 2).mean(0))
     p = to_params(x)
-    maps = SkinMaps(*(v[None] for v in p.unbind(0)), mm_per_pixel=mm)
-    if problem.absorbance is not None:  # the grey absorbance at every band the cube has
-        bands = problem.wavelength_nm.numel()
-        maps = maps.replace(absorbance=problem.absorbance[None, None].expand(1, bands, -1, -1).contiguous(),
-                            absorbance_wavelength_nm=problem.wavelength_nm.clone())
-
-    jac, col = curvature_and_columns(problem, ev)
-    dx = torch.zeros(problem.n_pixels, N_PARAMS, dtype=jac.dtype, device=jac.device)
-    if problem.layout.fine:  # the step still proposed moves a pixel's own maps (none: every map on nodes)
-        lam = torch.full((problem.n_pixels,), 1e-3, dtype=jac.dtype, device=jac.device)
-        grad = ev.grad if ev.grad is not None else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
-        dx = level_step(problem, jac, col, grad, ev.residual, lam, 1e-3, settings.free_scale)[0]
-    # uncertainty from the unweighted problem: the robust weights shape the estimate, not the camera's noise
-    problem.pixel_weight = None
-    jac, col = curvature_and_columns(problem, ev)
-    plain = problem.at_pixels(residual) * problem.band_weight
-    if problem.layout.per_pixel:
-        sigma_pix = _sigma(problem, jac, plain, x)
-    else:
-        sigma_pix = _sigma_shared(problem, jac, col, plain, x, settings.free_scale)
-    sigma_noise = sigma_pix
-    sigma_pix, widening = _widened(problem, ev, jac, plain, x, sigma_pix, renderer_fit)
+    dx = _proposed_step(problem, ev, settings)
+    sigma_pix, sigma_noise, widening = _pixel_sigma(problem, ev, residual, x, settings, renderer_fit)
     # not converged: the optimiser stopped at its iteration cap and the step it still proposes moves one
     # of the pixel's own maps by more than half its uncertainty. (After a passed convergence test the
     # proposed gn-hom step is no measure: it points at the fixed point of the approximate Jacobian, not
@@ -543,41 +523,15 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     remaining = (problem.at_pixels(dparams_dx(x)) * dx).abs()
     fine = problem.layout.fine
     moving_pix = (remaining[:, fine] > 0.5 * sigma_pix.to(remaining.dtype)[:, fine]).any(1) & (not result.converged)
-
-    h, w = problem.level.shape
-    flags = torch.zeros(h * w, dtype=torch.int32, device=x.device)
-    flags[~problem.mask.reshape(-1)] |= flag_value("masked")
-    flags[checks.saturated.reshape(-1).to(x.device)] |= flag_value("saturated")
-    bound_hit = near_bound(p, settings.at_bound_fraction)  # (N_PARAMS, H, W)
-    # a pixel's own maps at a bound flag it; a map on nodes at a bound is the whole region's, reported once
-    at_bound = bound_hit[problem.layout.fine].any(0).reshape(-1)
-    nodes_at_bound = {PARAMETER_NAMES[k]: float(bound_hit[k][problem.mask].double().mean()) for k in problem.layout.coarse
-                      if bool(bound_hit[k][problem.mask].any())}
-    flags[at_bound & problem.mask.reshape(-1)] |= flag_value("at_bound")
-    moving = torch.zeros(h * w, dtype=torch.bool, device=x.device)
-    moving[problem.pixels] = moving_pix
-    flags[moving] |= flag_value("not_converged")
-    rms_pix = residual_rms.reshape(-1)[problem.pixels]
-    high = torch.zeros(h * w, dtype=torch.bool, device=x.device)
-    high[problem.pixels] = rms_pix > settings.high_residual_factor * rms_pix.median()
-    flags[high] |= flag_value("high_residual")
-    if not bool(checks.bands_used.all()):
-        flags |= flag_value("band_excluded")
-    bias = band_bias(residual, problem.level.target, used, problem.mask & ~checks.saturated.to(x.device))
-    checks.warn(band_bias_notes(bias, problem.wavelength_nm.tolist()))
-    seen = problem.mask & ~checks.saturated.to(x.device)
-    noise = _cube_noise(problem.level.target, seen)
-    ratio = _residual_over_noise(residual, used, seen, noise)
-    checks.warn(residual_notes(ratio))
-    if noise is not None:
-        level = problem.level.target[:, seen].double().median(dim=1).values.clamp_min(1e-12)
-        checks.warn(smooth_band_notes((noise.double() / level).tolist(), problem.wavelength_nm.tolist(), used.tolist()))
+    flags, nodes_at_bound = _flags(problem, checks, settings, p, residual_rms, moving_pix)
+    bias, ratio = _data_notes(problem, checks, residual, used)
     if hairs is not None:
         flags[hairs.flagged.reshape(-1).to(x.device)] |= flag_value("hair")
         checks.warn(hair_notes(hairs, int((problem.mask | hairs.flagged.to(x.device)).sum())))
     clear = ~hairs.flagged.reshape(-1).to(x.device)[problem.pixels] if hairs is not None else None
     precision = _sigma_median(p, sigma_pix, problem, clear)
     checks.warn(precision_notes(precision))
+    h, w = problem.level.shape
     sigma = torch.full((N_PARAMS, h * w), float("nan"), dtype=x.dtype, device=x.device)
     sigma[:, problem.pixels] = sigma_pix.T.to(x.dtype)
     if hairs is not None and hairs.count:
@@ -585,14 +539,92 @@ def _finish(problem: LevelProblem, result: OptimResult, x, log_scale, checks: Da
     noise_sigma = torch.full_like(sigma, float("nan"))
     noise_sigma[:, problem.pixels] = sigma_noise.T.to(x.dtype)
     return {
-        "maps": maps, "scale": float(scale), "image": image, "residual": residual, "residual_rms": residual_rms,
-        "flags": flags.reshape(h, w), "sigma": sigma.reshape(N_PARAMS, h, w),
+        "maps": _final_maps(problem, p, mm), "scale": float(scale), "image": image, "residual": residual,
+        "residual_rms": residual_rms, "flags": flags.reshape(h, w), "sigma": sigma.reshape(N_PARAMS, h, w),
         "sigma_noise": noise_sigma.reshape(N_PARAMS, h, w), "maps_at_bound": nodes_at_bound,
         "band_bias": {f"{problem.wavelength_nm[j]:g}": round(b, 5) for j, b in bias.items()},
         "residual_over_noise": round(ratio, 4), "sigma_median": {n: round(v, 5) for n, v in precision.items()},
         "hairs": hairs.as_dict() if hairs is not None else None,
         "uncertainty": {**widening, "noise_sigma_median": {n: float(sigma_noise[:, k].median()) for k, n in enumerate(PARAMETER_NAMES)}},
     }
+
+
+def _final_maps(problem: LevelProblem, p: torch.Tensor, mm: float) -> SkinMaps:
+    """The parameter maps ``p`` ``(N_PARAMS, H, W)`` as ``SkinMaps``, with the grey absorbance at every band."""
+    maps = SkinMaps(*(v[None] for v in p.unbind(0)), mm_per_pixel=mm)
+    if problem.absorbance is not None:
+        bands = problem.wavelength_nm.numel()
+        maps = maps.replace(absorbance=problem.absorbance[None, None].expand(1, bands, -1, -1).contiguous(),
+                            absorbance_wavelength_nm=problem.wavelength_nm.clone())
+    return maps
+
+
+def _proposed_step(problem: LevelProblem, ev, settings: FitSettings) -> torch.Tensor:
+    """The step ``(N, N_PARAMS)`` the optimiser still proposes for each pixel's own maps (zero where every
+    map is on nodes)."""
+    jac, col = curvature_and_columns(problem, ev)
+    dx = torch.zeros(problem.n_pixels, N_PARAMS, dtype=jac.dtype, device=jac.device)
+    if problem.layout.fine:
+        lam = torch.full((problem.n_pixels,), 1e-3, dtype=jac.dtype, device=jac.device)
+        grad = ev.grad if ev.grad is not None else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
+        dx = level_step(problem, jac, col, grad, ev.residual, lam, 1e-3, settings.free_scale)[0]
+    return dx
+
+
+def _pixel_sigma(problem: LevelProblem, ev, residual, x, settings: FitSettings, renderer_fit: bool):
+    """σ per loss pixel ``(N, N_PARAMS)``: widened, from the noise alone, and the widening's record.
+    From the unweighted problem: the robust weights shape the estimate, not the camera's noise."""
+    problem.pixel_weight = None
+    jac, col = curvature_and_columns(problem, ev)
+    plain = problem.at_pixels(residual) * problem.band_weight
+    if problem.layout.per_pixel:
+        sigma_noise = _sigma(problem, jac, plain, x)
+    else:
+        sigma_noise = _sigma_shared(problem, jac, col, plain, x, settings.free_scale)
+    sigma_pix, widening = _widened(problem, ev, jac, plain, x, sigma_noise, renderer_fit)
+    return sigma_pix, sigma_noise, widening
+
+
+def _flags(problem: LevelProblem, checks: DataChecks, settings: FitSettings, p: torch.Tensor, residual_rms: torch.Tensor,
+           moving_pix: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+    """The flag bits per pixel ``(H·W,)`` (masked, saturated, at a bound, not converged, high residual,
+    a band excluded) and the maps on nodes that rest at a bound (share of the pixels)."""
+    h, w = problem.level.shape
+    device = p.device
+    flags = torch.zeros(h * w, dtype=torch.int32, device=device)
+    flags[~problem.mask.reshape(-1)] |= flag_value("masked")
+    flags[checks.saturated.reshape(-1).to(device)] |= flag_value("saturated")
+    bound_hit = near_bound(p, settings.at_bound_fraction)  # (N_PARAMS, H, W)
+    # a pixel's own maps at a bound flag it; a map on nodes at a bound is the whole region's, reported once
+    at_bound = bound_hit[problem.layout.fine].any(0).reshape(-1)
+    nodes_at_bound = {PARAMETER_NAMES[k]: float(bound_hit[k][problem.mask].double().mean()) for k in problem.layout.coarse
+                      if bool(bound_hit[k][problem.mask].any())}
+    flags[at_bound & problem.mask.reshape(-1)] |= flag_value("at_bound")
+    moving = torch.zeros(h * w, dtype=torch.bool, device=device)
+    moving[problem.pixels] = moving_pix
+    flags[moving] |= flag_value("not_converged")
+    rms_pix = residual_rms.reshape(-1)[problem.pixels]
+    high = torch.zeros(h * w, dtype=torch.bool, device=device)
+    high[problem.pixels] = rms_pix > settings.high_residual_factor * rms_pix.median()
+    flags[high] |= flag_value("high_residual")
+    if not bool(checks.bands_used.all()):
+        flags |= flag_value("band_excluded")
+    return flags, nodes_at_bound
+
+
+def _data_notes(problem: LevelProblem, checks: DataChecks, residual: torch.Tensor, used: torch.Tensor) -> tuple[dict, float]:
+    """The residual's checks as notes: a band biased, the residual against the cube's own noise, a band
+    too smooth for its noise. Returns the per-band bias and the residual-over-noise ratio."""
+    seen = problem.mask & ~checks.saturated.to(residual.device)
+    bias = band_bias(residual, problem.level.target, used, seen)
+    checks.warn(band_bias_notes(bias, problem.wavelength_nm.tolist()))
+    noise = _cube_noise(problem.level.target, seen)
+    ratio = _residual_over_noise(residual, used, seen, noise)
+    checks.warn(residual_notes(ratio))
+    if noise is not None:
+        level = problem.level.target[:, seen].double().median(dim=1).values.clamp_min(1e-12)
+        checks.warn(smooth_band_notes((noise.double() / level).tolist(), problem.wavelength_nm.tolist(), used.tolist()))
+    return bias, ratio
 
 
 def _hairs(cube: Cube, checks: DataChecks) -> HairFinding | None:
