@@ -53,18 +53,7 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
     wl = [float(w) for w in fit.wavelength_nm.tolist()]
     used = [bool(u) for u in fit.checks.bands_used.tolist()]
     flags = {name: int(((fit.flags >> bit) & 1).sum()) for name, bit in FLAG_BITS.items()}
-    per_param = {}
-    at_bound = near_bound(params, settings.at_bound_fraction)  # (N_PARAMS, visible pixels)
-    for i, n in enumerate(PARAMETER_NAMES):
-        entry = trimmed_stats(params[i])
-        entry["sigma_median"] = float(sigma[i].median())
-        share = float(at_bound[i].double().mean()) if at_bound.shape[1] else 0.0
-        entry["determined"] = share < UNDETERMINED_AT_BOUND_SHARE
-        if not entry["determined"]:
-            entry["undetermined_because"] = (
-                f"it rests at a bound of its range on {share:.0%} of the pixels: the data push it past the model's range, "
-                "so the value is the bound's and sigma does not describe its error")
-        per_param[n] = entry
+    per_param = _parameter_stats(params, sigma, settings.at_bound_fraction)
     return {
         "software_version": software_version(),
         "input": source,
@@ -107,6 +96,24 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
         "history": [[round(t, 3), loss, level] for t, loss, level in fit.history],
         "settings": settings.model_dump(mode="json"),
     }
+
+
+def _parameter_stats(params: torch.Tensor, sigma: torch.Tensor, at_bound_fraction: float) -> dict[str, dict]:
+    """Per map: trimmed statistics of ``params`` ``(N_PARAMS, pixels)``, the median σ, and whether the
+    data determine it (not resting at a bound of its range)."""
+    per_param = {}
+    at_bound = near_bound(params, at_bound_fraction)  # (N_PARAMS, visible pixels)
+    for i, n in enumerate(PARAMETER_NAMES):
+        entry = trimmed_stats(params[i])
+        entry["sigma_median"] = float(sigma[i].median())
+        share = float(at_bound[i].double().mean()) if at_bound.shape[1] else 0.0
+        entry["determined"] = share < UNDETERMINED_AT_BOUND_SHARE
+        if not entry["determined"]:
+            entry["undetermined_because"] = (
+                f"it rests at a bound of its range on {share:.0%} of the pixels: the data push it past the model's range, "
+                "so the value is the bound's and sigma does not describe its error")
+        per_param[n] = entry
+    return per_param
 
 
 def reconstruct_cube(

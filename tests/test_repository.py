@@ -209,7 +209,7 @@ _TOO_LONG_FOR_NOW = {
     "calibration/pipeline.py::_calibrate_band": 82, "model/thin.py::render_transmission": 81,
     "calibration/window.py::find_window": 71, "calibration/window.py::_coarse_quad": 69, "model/layered.py::SkinModel.transforms_at": 68,
     "acquire/session.py::run_session": 68, "acquire/dng.py::write_dng": 68, "model/cli.py::render": 67,
-    "reconstruct/gauss_newton.py::gauss_newton": 66, "model/cli.py::spectrum": 64, "reconstruct/outputs.py::fit_summary": 62,
+    "reconstruct/gauss_newton.py::gauss_newton": 66, "model/cli.py::spectrum": 64,
 }
 
 
