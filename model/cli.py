@@ -167,6 +167,11 @@ def spectrum(
     if as_json:
         typer.echo(json.dumps(report))
         return
+    _print_spectrum(report, illuminant, plot)
+
+
+def _print_spectrum(report: dict, illuminant: str, plot: Path | None) -> None:
+    """``spectrum``'s table of reflectance per wavelength, its parameters and colour."""
     from rich.console import Console  # noqa: PLC0415
     from rich.table import Table  # noqa: PLC0415
 
@@ -321,30 +326,15 @@ def render(
 
     Example: skinlayers render maps.exr --light window:7.5 --edit hemoglobin*1.5 -o out/render
     """
-    from .edits import add_absorbance, apply_edit, swap_chromophore  # noqa: PLC0415
     from .illumination import parse_light  # noqa: PLC0415
     from ..formats.exr import write_spectral  # noqa: PLC0415
-    from ..formats.maps import read_absorbance  # noqa: PLC0415
     from ..formats.outputs import claim_outputs  # noqa: PLC0415
-    from .maps_io import read_maps  # noqa: PLC0415
 
     settings = load_model_settings(config)
     dev = _device(device)
     lit = parse_light(light)
     wl = parse_wavelengths(bands) if bands else torch.tensor(settings.render_wavelengths_nm, dtype=torch.float64)
-    maps = read_maps(maps_file)
-    for item in swap:
-        name, _, path = item.partition("=")
-        if not path:
-            raise InputError(f"--swap {item!r}: expected NAME=FILE.exr")
-        maps = swap_chromophore(maps, read_maps(path), name.strip())
-    for item in edit:
-        maps = apply_edit(maps, item)
-    if tattoo is not None:
-        ink, ink_wl, ink_mm = read_absorbance(tattoo)
-        if abs(ink_mm - maps.mm_per_pixel) > 1e-6 * maps.mm_per_pixel:
-            raise InputError(f"{tattoo}: mm_per_pixel {ink_mm:g} differs from the maps' {maps.mm_per_pixel:g}")
-        maps = add_absorbance(maps, ink, ink_wl)
+    maps = _edited_maps(maps_file, swap, edit, tattoo)
     check_physics_options(physics, photons)
     base = out.with_suffix("") if out.suffix.lower() in (".exr", ".png") else out
     names = [base.with_suffix(".exr").name] + ([base.with_suffix(".png").name] if wl.numel() >= 2 else [])
@@ -365,6 +355,28 @@ def render(
         f"rendered {image.shape[1]}×{image.shape[2]} px at {wl.numel()} bands on {dev.type} in {seconds:.1f} s "
         f"({how}): " + ", ".join(str(base.parent / n) for n in names)
     )
+
+
+def _edited_maps(maps_file: Path, swap: list[str], edit: list[str], tattoo: Path | None):
+    """The maps to render: read, then each ``--swap`` (NAME=FILE.exr), each ``--edit``, and the ``--tattoo``'s ink."""
+    from ..formats.maps import read_absorbance  # noqa: PLC0415
+    from .edits import add_absorbance, apply_edit, swap_chromophore  # noqa: PLC0415
+    from .maps_io import read_maps  # noqa: PLC0415
+
+    maps = read_maps(maps_file)
+    for item in swap:
+        name, _, path = item.partition("=")
+        if not path:
+            raise InputError(f"--swap {item!r}: expected NAME=FILE.exr")
+        maps = swap_chromophore(maps, read_maps(path), name.strip())
+    for item in edit:
+        maps = apply_edit(maps, item)
+    if tattoo is not None:
+        ink, ink_wl, ink_mm = read_absorbance(tattoo)
+        if abs(ink_mm - maps.mm_per_pixel) > 1e-6 * maps.mm_per_pixel:
+            raise InputError(f"{tattoo}: mm_per_pixel {ink_mm:g} differs from the maps' {maps.mm_per_pixel:g}")
+        maps = add_absorbance(maps, ink, ink_wl)
+    return maps
 
 
 def _render_diffusion(maps, light, wl: torch.Tensor, settings: ModelSettings, device, blur, angles: dict):
