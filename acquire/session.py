@@ -147,6 +147,27 @@ def _free_name(folder: Path, name: str) -> str:
     return f"{stem}-retake-{n}{suffix}"
 
 
+def _capture_frame(folder: Path, wheel: FilterWheel, camera: Camera, p: PlannedFrame) -> FrameRecord:
+    """One planned frame: the wheel moved, the camera set and fired into a temporary file, which is
+    renamed into place only once whole (removed if the capture fails); its record for the manifest."""
+    wheel.move_to(p.filter_position)
+    got = camera.configure(p.exposure)
+    partial = folder / f"{PARTIAL_PREFIX}{p.stem}"
+    written: Optional[Path] = None
+    try:
+        written = Path(camera.capture(partial))
+        name = _free_name(folder, p.stem + written.suffix.lower())
+        os.replace(written, folder / name)
+        written = None
+    finally:
+        if written is not None and written.exists():
+            written.unlink()
+    return FrameRecord(
+        role=p.role, band_nm=p.band_nm, filter_position=p.filter_position, exposure=got.as_dict(),
+        file=name, sha256=file_sha256(folder / name), time=now_iso(),
+    )
+
+
 def run_session(
     folder: str | Path,
     rig: RigConfig,
@@ -191,22 +212,7 @@ def run_session(
         label = "black frame" if p.role == "dark" else f"{p.role} {p.band_nm:g} nm"
         if progress:
             progress(done, len(plan), label)
-        wheel.move_to(p.filter_position)
-        got = camera.configure(p.exposure)
-        partial = folder / f"{PARTIAL_PREFIX}{p.stem}"
-        written: Optional[Path] = None
-        try:
-            written = Path(camera.capture(partial))
-            name = _free_name(folder, p.stem + written.suffix.lower())
-            os.replace(written, folder / name)
-            written = None
-        finally:
-            if written is not None and written.exists():
-                written.unlink()
-        manifest.frames.append(FrameRecord(
-            role=p.role, band_nm=p.band_nm, filter_position=p.filter_position, exposure=got.as_dict(),
-            file=name, sha256=file_sha256(folder / name), time=now_iso(),
-        ))
+        manifest.frames.append(_capture_frame(folder, wheel, camera, p))
         write_manifest(folder, manifest)
         done += 1
         if progress:

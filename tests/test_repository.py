@@ -208,7 +208,7 @@ _TOO_LONG_FOR_NOW = {
     "reconstruct/fit.py::_homogeneous_fit": 101, "reconstruct/absorbers.py::fit_grey_absorbance": 82,
     "calibration/pipeline.py::_calibrate_band": 82, "model/thin.py::render_transmission": 81,
     "calibration/window.py::find_window": 71, "calibration/window.py::_coarse_quad": 69, "model/layered.py::SkinModel.transforms_at": 68,
-    "acquire/session.py::run_session": 68, "acquire/dng.py::write_dng": 68,
+    "acquire/dng.py::write_dng": 68,
     "reconstruct/gauss_newton.py::gauss_newton": 66,
 }
 
