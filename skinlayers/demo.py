@@ -237,7 +237,7 @@ def demo(
     (folder / "accuracy.json").write_text(json.dumps(accuracy, indent=2))
     _figure(session, reconstruction, folder / "truth_vs_fit.png")
     _print_accuracy(accuracy)
-    _print_folder(folder, times)
+    _print_folder(folder, session, calibrated / CUBE_NAME, reconstruction, times)
 
 
 def _checked_options(out: Path | None, size: int, device: str, scene: Path | None, physics: str,
@@ -261,13 +261,13 @@ def _checked_options(out: Path | None, size: int, device: str, scene: Path | Non
     return truth
 
 
-def _print_folder(folder: Path, times: dict[str, float]) -> None:
+def _print_folder(folder: Path, session: Path, cube: Path, reconstruction: Path, times: dict[str, float]) -> None:
     """Where the demo wrote what, and each step's time."""
     typer.echo("")
     typer.echo(f"demo folder:    {folder}")
-    typer.echo(f"  session:      {folder / 'session'}   (raw DNG frames, manifest.json, truth/)")
-    typer.echo(f"  cube:         {folder / 'calibrated' / CUBE_NAME}   (+ calibration.json, contact_sheet.png)")
-    typer.echo(f"  maps:         {folder / 'reconstruction' / 'maps.exr'}   (+ fit.json, report.png)")
+    typer.echo(f"  session:      {session}   (raw DNG frames, manifest.json, truth/)")
+    typer.echo(f"  cube:         {cube}   (+ calibration.json, contact_sheet.png)")
+    typer.echo(f"  maps:         {reconstruction / 'maps.exr'}   (+ fit.json, report.png)")
     typer.echo(f"  accuracy:     {folder / 'accuracy.json'}, {folder / 'truth_vs_fit.png'}")
     typer.echo("times: " + ", ".join(f"{k[:-2]} {v:.0f} s" for k, v in times.items()))
 
