@@ -73,6 +73,42 @@ class RenderResult:
     mm_per_pixel: float
 
 
+@dataclass
+class _Layers:
+    """The layers on the padded grid: spectra, σa of epidermis and dermis ``(B, L, Hp, Wp)`` (1/mm) and
+    the interface's attenuation A ``(B·L, Hp, Wp)``."""
+
+    spectra: object
+    sa_epi: torch.Tensor
+    sa_derm: torch.Tensor
+    attenuation: torch.Tensor
+
+
+@dataclass
+class _Gathers:
+    """What every gather of one render shares: the blur plan, each profile's columns and lookups, the
+    dermis's hand-back factor ``(B·L, Hp, Wp)`` and the number of inter-scattering terms."""
+
+    plan: BlurPlan
+    cols: dict
+    at: dict
+    epi: object
+    derm: object
+    back: torch.Tensor
+    terms: int
+
+
+@dataclass
+class _View:
+    """Where the light comes from and the camera looks (degrees), gel or none, crop or not."""
+
+    under_gel: bool
+    light_angle_deg: float
+    view_angle_deg: float
+    azimuth_deg: float
+    crop: bool
+
+
 class SkinRenderer:
     """Renders ``SkinMaps`` under a ``Light`` at any set of wavelengths, differentiably."""
 
@@ -95,21 +131,34 @@ class SkinRenderer:
         crop: bool = True,
     ) -> RenderResult:
         """Render every band of ``wavelength_nm`` ``(L,)``; ``blur`` and ``series_terms`` override the settings."""
-        rs = self.settings.render
-        o = self.settings.optics
         wl = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
+        border = light.border_px(maps.mm_per_pixel, self.settings.render.border_mm)
+        self._require_memory(maps, wl, border)
+        layers = self._layers(maps, wl, border)
+        gathers = self._gathers(maps, light, layers, wl, blur, series_terms)
+        irradiance = light.irradiance(*maps.shape[-2:], border, maps.mm_per_pixel, maps.dtype, maps.device)
+        exitance = self._series(layers, gathers, irradiance, light_angle_deg)
+        view = _View(under_gel, light_angle_deg, view_angle_deg, azimuth_deg, crop)
+        return self._picture(maps, exitance, irradiance, wl, border, gathers.terms, view)
+
+    # -- the steps of a render -------------------------------------------------------------------
+    def _require_memory(self, maps: SkinMaps, wl: torch.Tensor, border: int) -> None:
+        """Refuse a render whose estimated peak exceeds the memory available, before allocating."""
+        rs = self.settings.render
         b, h, w = maps.shape
-        dtype, device = maps.dtype, maps.device
-        border = light.border_px(maps.mm_per_pixel, rs.border_mm)
         backward = torch.is_grad_enabled() and any(v.requires_grad for v in maps.params().values())
         require_memory(
-            render_bytes(b, wl.numel(), h, w, border, itemsize=dtype.itemsize, weight_cache_mb=rs.weight_cache_mb, backward=backward),
+            render_bytes(b, wl.numel(), h, w, border, itemsize=maps.dtype.itemsize,
+                         weight_cache_mb=rs.weight_cache_mb, backward=backward),
             f"rendering {b}×{wl.numel()} band(s) of {h + 2 * border}×{w + 2 * border} px ({border} px of border)",
-            "Render fewer bands at once, a coarser grid, or less border (render.border_mm).", device,
+            "Render fewer bands at once, a coarser grid, or less border (render.border_mm).", maps.device,
         )
-        pad = lambda x: _replicate(x, border)  # noqa: E731 (border parameters follow the nearest pixel)
+
+    def _layers(self, maps: SkinMaps, wl: torch.Tensor, border: int) -> _Layers:
+        """The layers' absorption on the padded grid and the interface's attenuation A = exp(-P);
+        border parameters follow the nearest pixel."""
         params = maps.params()
-        padded = type(params)(*(pad(v) for v in params.values()))
+        padded = type(params)(*(_replicate(v, border) for v in params.values()))
         spectra = self.model.spectra(wl)
         ab = self.model.absorption(padded, spectra)  # (B, Hp, Wp, L)
         sa_epi = ab.epidermis.permute(0, 3, 1, 2)
@@ -117,71 +166,98 @@ class SkinRenderer:
         absorbance = ab.interface_absorbance.permute(0, 3, 1, 2)
         if maps.absorbance is not None:
             absorbance = absorbance + _pad_bands(_resample_bands(maps.absorbance, maps.absorbance_wavelength_nm, wl), border)
-        attenuation = torch.exp(-absorbance).reshape(b * wl.numel(), *sa_epi.shape[-2:])
-        tables = self.model.tables(wl).to(device, dtype)
+        attenuation = torch.exp(-absorbance).reshape(maps.shape[0] * wl.numel(), *sa_epi.shape[-2:])
+        return _Layers(spectra, sa_epi, sa_derm, attenuation)
+
+    def _gathers(self, maps: SkinMaps, light: Light, layers: _Layers, wl: torch.Tensor, blur: str | None,
+                 series_terms: int | None) -> _Gathers:
+        """The blur plan, each profile's columns and per-pixel lookups, the dermis's hand-back and the
+        number of inter-scattering terms."""
+        rs = self.settings.render
+        tables = self.model.tables(wl).to(maps.device, maps.dtype)
         plan = BlurPlan.build(
             tables.variances_mm2, maps.mm_per_pixel, blur or rs.blur,
             boundary="replicate" if light.extends else "zero",
             identity_below_px=rs.identity_below_px, pyramid_min_px=rs.pyramid_min_px,
         )
-        epi = lookup(tables.sigma_a_per_mm, sa_epi)
-        derm = lookup(tables.sigma_a_per_mm, sa_derm)
+        epi = lookup(tables.sigma_a_per_mm, layers.sa_epi)
+        derm = lookup(tables.sigma_a_per_mm, layers.sa_derm)
         cols = {p: columns(tables, "epidermis", p, plan) for p in EPIDERMIS_PROFILES}
         cols["R2_plus"] = columns(tables, "dermis", "R_plus", plan)
         # the dermis's answer, per exit pixel: through the interface, times the hand-over factor κ
         # (transport; κ at the entry pixel or split between both draws features much like this:
         # docs/renderer.md, "From model/renderer.py")
-        back = attenuation * handover_on_grid(self.model.handover_grid(wl, device), epi.index, epi.frac,
+        attenuation = layers.attenuation
+        back = attenuation * handover_on_grid(self.model.handover_grid(wl, maps.device), epi.index, epi.frac,
                                               derm.index, derm.frac) if self._angular else attenuation
-        terms = series_terms or self._series_terms(cols, epi, derm, attenuation * back, b, wl.numel())
+        terms = series_terms or self._series_terms(cols, epi, derm, attenuation * back, maps.shape[0], wl.numel())
         if rs.coupling == "segment":
             at = self._cached_lookups(
-                cols, _column_lookups(tables.sigma_a_per_mm, sa_epi, plan, rs, rs.coupling_scale_epidermis),
-                _column_lookups(tables.sigma_a_per_mm, sa_derm, plan, rs, rs.coupling_scale), terms)
+                cols, _column_lookups(tables.sigma_a_per_mm, layers.sa_epi, plan, rs, rs.coupling_scale_epidermis),
+                _column_lookups(tables.sigma_a_per_mm, layers.sa_derm, plan, rs, rs.coupling_scale), terms)
         else:
             at = self._cached_lookups(cols, epi, derm, terms)
+        return _Gathers(plan, cols, at, epi, derm, back, terms)
 
+    def _series(self, layers: _Layers, gathers: _Gathers, irradiance: torch.Tensor,
+                light_angle_deg: float) -> torch.Tensor:
+        """Eq. 7's series: the exitance M ``(B·L, Hp, Wp)`` per unit of the reference irradiance."""
+        rs, o = self.settings.render, self.settings.optics
+        cols, at, attenuation, back = gathers.cols, gathers.at, layers.attenuation, gathers.back
+        b, n_bands = layers.sa_epi.shape[:2]
         f_t = entry_transmittance(o.n_epidermis, o.n_above, math.cos(math.radians(light_angle_deg)))
-        irradiance = light.irradiance(h, w, border, maps.mm_per_pixel, dtype, device)
-        phi = (f_t * irradiance).expand(b, wl.numel(), *irradiance.shape[-2:]).reshape(b * wl.numel(), *irradiance.shape[-2:])
+        phi = (f_t * irradiance).expand(b, n_bands, *irradiance.shape[-2:]).reshape(b * n_bands, *irradiance.shape[-2:])
 
         def g(f, sets):
-            return gather(f, sets, plan, lean=rs.checkpoint)
+            return gather(f, sets, gathers.plan, lean=rs.checkpoint)
 
         m, t1 = g(phi, [(cols["R_plus"], at["R_plus"]), (cols["T_plus"], at["T_plus"])])
         if self.settings.profiles == "transport":
-            # the beam that crossed the epidermis unscattered reaches the dermis below its entry point
-            s_epi = spectra.scattering_epidermis.to(sa_epi).view(1, -1, 1, 1)
-            s_derm = spectra.scattering_dermis.to(sa_derm).view(1, -1, 1, 1)
-            beam = collimated_transmission(sa_epi, s_epi, o.epidermis_thickness_mm, sa_derm, s_derm)
-            t1 = t1 + (beam.collimated_ratio * beam.T1_collimated).reshape(t1.shape) * phi
+            t1 = t1 + self._unscattered_beam(layers).reshape(t1.shape) * phi
         u = attenuation * t1
-        for n in range(terms):
+        for n in range(gathers.terms):
             (r2,) = g(u, [(cols["R2_plus"], at["R2_plus"])])
             v = back * r2
-            if n + 1 < terms:
+            if n + 1 < gathers.terms:
                 t_out, r1 = g(v, [(cols["T_minus"], at["T_minus"]), (cols["R_minus"], at["R_minus"])])
                 u = attenuation * r1
             else:
                 if rs.series_closure:
                     # the rest of the series, Σ_{k≥1} V_{n+k} ≈ V_n ρ/(1-ρ) with ρ = A² κ R₁⁻ R₂⁺ per pixel:
                     # exact for homogeneous skin under uniform light, and the rest holds little light
-                    rho = attenuation * back * total(cols["R_minus"], epi) * total(cols["R2_plus"], derm)
+                    rho = attenuation * back * total(cols["R_minus"], gathers.epi) * total(cols["R2_plus"], gathers.derm)
                     v = v / (1.0 - rho)
                 (t_out,) = g(v, [(cols["T_minus"], at["T_minus"])])
             m = m + t_out
+        return m
+
+    def _unscattered_beam(self, layers: _Layers) -> torch.Tensor:
+        """q T_c per pixel ``(B, L, Hp, Wp)``: the beam that crossed the epidermis unscattered reaches
+        the dermis below its entry point (``profiles: transport``)."""
+        o = self.settings.optics
+        s_epi = layers.spectra.scattering_epidermis.to(layers.sa_epi).view(1, -1, 1, 1)
+        s_derm = layers.spectra.scattering_dermis.to(layers.sa_derm).view(1, -1, 1, 1)
+        beam = collimated_transmission(layers.sa_epi, s_epi, o.epidermis_thickness_mm, layers.sa_derm, s_derm)
+        return beam.collimated_ratio * beam.T1_collimated
+
+    def _picture(self, maps: SkinMaps, m: torch.Tensor, irradiance: torch.Tensor, wl: torch.Tensor, border: int,
+                 terms: int, view: _View) -> RenderResult:
+        """Cropped exitance, the camera's reflectance factor, and the surface term when not under gel."""
+        o, rs = self.settings.optics, self.settings.render
+        b, h, w = maps.shape
         exitance = m.reshape(b, wl.numel(), *m.shape[-2:])
-        if crop and border:
+        cropped = view.crop and border
+        if cropped:
             exitance = exitance[..., border:border + h, border:border + w]
         # per unit of the reference irradiance E (light of strength 1)
-        image = exitance * exit_factor(o.n_epidermis, o.n_above, math.cos(math.radians(view_angle_deg)))
-        if not under_gel and maps.rho_s is not None:
+        image = exitance * exit_factor(o.n_epidermis, o.n_above, math.cos(math.radians(view.view_angle_deg)))
+        if not view.under_gel and maps.rho_s is not None:
             spec = torrance_sparrow_factor(
-                math.cos(math.radians(light_angle_deg)), math.cos(math.radians(view_angle_deg)), azimuth_deg,
-                o.n_epidermis / o.n_above, rs.surface_roughness,
+                math.cos(math.radians(view.light_angle_deg)), math.cos(math.radians(view.view_angle_deg)),
+                view.azimuth_deg, o.n_epidermis / o.n_above, rs.surface_roughness,
             )
-            lit = irradiance if not (crop and border) else irradiance[..., border:border + h, border:border + w]
-            rho = maps.rho_s if (crop or not border) else pad(maps.rho_s)
+            lit = irradiance if not cropped else irradiance[..., border:border + h, border:border + w]
+            rho = maps.rho_s if (view.crop or not border) else _replicate(maps.rho_s, border)
             image = image + (spec * rho * lit)[:, None]
         return RenderResult(exitance, image, wl, [terms] * wl.numel(), maps.mm_per_pixel)
 
