@@ -118,79 +118,107 @@ def fit_grey_absorbance(problem: LevelProblem, x: torch.Tensor, log_scale: torch
     held; returns what was found and the maps ``(N_PARAMS, H, W)`` after (the candidates that keep no P
     keep their maps). ``problem.absorbance`` is left at the kept P. ``noise`` ``(L,)`` the cube's σ per
     band at this level."""
-    h, w = problem.level.shape
     n_data = problem.n_pixels * int((problem.band_weight > 0).sum())
     penalty = math.log(max(n_data, 2))
     weight, problem.pixel_weight = problem.pixel_weight, None  # P answers the camera's noise, not the robust weights
-    problem.absorbance = None
-    ev0 = problem.evaluate(x, log_scale)
-    chi2_rows0 = _chi2_rows(problem, _plain_residual(problem, ev0), noise)
-    rows = candidates.nonzero()[:, 0]
-    k = int(rows.numel())
-    if k == 0:
+    try:
+        problem.absorbance = None
+        ev0 = problem.evaluate(x, log_scale)
+        chi2_rows0 = _chi2_rows(problem, _plain_residual(problem, ev0), noise)
+        rows = candidates.nonzero()[:, 0]
+        search = _GreyAbsorbance(problem, x, rows)
+        if rows.numel() == 0:
+            chi2 = float(chi2_rows0.sum())
+            return AbsorberFit(search.image_of(None), 0, 0, chi2, chi2, penalty, 0,
+                               "no pixel's residual is above the flag's threshold"), x
+        x_fit, p_rows, ev, steps = search.iterate(x, log_scale, ev0)
+        return search.keep(x, x_fit, p_rows, ev, log_scale, noise, chi2_rows0, penalty, steps)
+    finally:
         problem.pixel_weight = weight
-        return AbsorberFit(torch.zeros(h, w, dtype=x.dtype, device=x.device), 0, 0, float(chi2_rows0.sum()),
-                           float(chi2_rows0.sum()), penalty, 0, "no pixel's residual is above the flag's threshold"), x
-    flat = problem.pixels[rows]
-    x_rows = problem.at_pixels(x)[rows]
-    wl = problem.wavelength_nm
-    model = problem.renderer.model
-    used = (problem.band_weight > 0).to(x.dtype)
 
-    def hom(v):  # (K, N_PARAMS + 1) → (K, L): the pixel's homogeneous model with its own grey P
-        return model.diffuse_reflectance(params_of_rows(v[:, :-1]), wl, method="tables",
-                                         extra_absorbance=v[:, -1:].expand(-1, wl.numel()))
 
-    def image_of(p_rows: torch.Tensor) -> torch.Tensor:
-        p = torch.zeros(h * w, dtype=x.dtype, device=x.device)
-        p[flat] = p_rows
-        return p.reshape(h, w)
+class _GreyAbsorbance:
+    """A grey absorbance P per candidate pixel (``rows``), fitted with the maps that pixel owns: damped
+    Gauss–Newton on each pixel's homogeneous model scaled to the renderer's image, the whole step or
+    its halves while the loss does not fall; then BIC decides which P stay."""
 
-    fine = list(problem.layout.fine)  # the maps a pixel owns move with its P (melanin took the hair's place)
-    cols = fine + [x_rows.shape[1]]
-    p_rows = torch.zeros(k, dtype=x.dtype, device=x.device)
-    x_start, x = x, x.clone()
-    ev = ev0
-    steps = 0
-    for _ in range(ITERATIONS):
-        value, jac = reverse_jacobian(hom, torch.cat([x_rows, p_rows[:, None]], 1).double())
-        het = problem.at_pixels(ev.image)[rows].double()
+    def __init__(self, problem: LevelProblem, x: torch.Tensor, rows: torch.Tensor) -> None:
+        self.problem, self.rows = problem, rows
+        self.h, self.w = problem.level.shape
+        self.dtype, self.device = x.dtype, x.device
+        self.flat = problem.pixels[rows]
+        self.fine = list(problem.layout.fine)  # the maps a pixel owns move with its P (melanin took the hair's place)
+        self.used = (problem.band_weight > 0).to(x.dtype)
+
+    def image_of(self, p_rows: torch.Tensor | None) -> torch.Tensor:
+        """P of the rows on the level's grid ``(H, W)`` (zero elsewhere; all zero for ``None``)."""
+        p = torch.zeros(self.h * self.w, dtype=self.dtype, device=self.device)
+        if p_rows is not None:
+            p[self.flat] = p_rows
+        return p.reshape(self.h, self.w)
+
+    def _hom(self, v: torch.Tensor) -> torch.Tensor:
+        """``(K, N_PARAMS + 1)`` → ``(K, L)``: the pixel's homogeneous model with its own grey P."""
+        wl = self.problem.wavelength_nm
+        return self.problem.renderer.model.diffuse_reflectance(params_of_rows(v[:, :-1]), wl, method="tables",
+                                                               extra_absorbance=v[:, -1:].expand(-1, wl.numel()))
+
+    def _step(self, x_rows: torch.Tensor, p_rows: torch.Tensor, ev) -> torch.Tensor:
+        """The damped Gauss–Newton step ``(K, fine + 1)`` of the rows' own maps and P."""
+        problem = self.problem
+        value, jac = reverse_jacobian(self._hom, torch.cat([x_rows, p_rows[:, None]], 1).double())
+        het = problem.at_pixels(ev.image)[self.rows].double()
         factor = (het / (value * problem.exit).clamp_min(1e-12)).clamp(0.0, 2.0) * float(torch.exp(ev.log_scale))
-        j = jac[..., cols] * (problem.exit * factor * used.double())[..., None]  # (K, L, fine + 1)
+        cols = self.fine + [x_rows.shape[1]]
+        j = jac[..., cols] * (problem.exit * factor * self.used.double())[..., None]  # (K, L, fine + 1)
         j[..., -1] *= EXIT_SHARE
-        r = ev.residual[rows].double()
+        r = ev.residual[self.rows].double()
         g = (j.transpose(1, 2) @ r[..., None])[..., 0]
         step = -block_solve(block_factor(j.transpose(1, 2) @ j, DAMPING), g[..., None])[..., 0]
-        step = step.clamp(-MAX_STEP, MAX_STEP).to(x.dtype)
-        for _halving in range(HALVINGS):  # the whole step, else half of it, while the loss does not fall
-            x_trial, p_trial = _moved(x, flat, fine, x_rows, step, p_rows)
-            problem.absorbance = image_of(p_trial)
-            trial = problem.evaluate(x_trial, log_scale)
-            steps += 1
-            if trial.loss < ev.loss:
+        return step.clamp(-MAX_STEP, MAX_STEP).to(self.dtype)
+
+    def iterate(self, x: torch.Tensor, log_scale: torch.Tensor, ev):
+        """Steps until the loss stops falling; returns the maps, the rows' P, the last evaluation and the
+        evaluations spent. ``problem.absorbance`` holds the P of the last evaluation."""
+        problem = self.problem
+        x = x.clone()
+        x_rows = problem.at_pixels(x)[self.rows]
+        p_rows = torch.zeros(int(self.rows.numel()), dtype=self.dtype, device=self.device)
+        steps = 0
+        for _ in range(ITERATIONS):
+            step = self._step(x_rows, p_rows, ev)
+            for _halving in range(HALVINGS):  # the whole step, else half of it, while the loss does not fall
+                x_trial, p_trial = _moved(x, self.flat, self.fine, x_rows, step, p_rows)
+                problem.absorbance = self.image_of(p_trial)
+                trial = problem.evaluate(x_trial, log_scale)
+                steps += 1
+                if trial.loss < ev.loss:
+                    break
+                step = 0.5 * step
+            else:
+                problem.absorbance = self.image_of(p_rows)
                 break
-            step = 0.5 * step
-        else:
-            problem.absorbance = image_of(p_rows)
-            break
-        relative = (ev.loss - trial.loss) / max(ev.loss, 1e-300)
-        x, p_rows, ev = x_trial, p_trial, trial
-        x_rows = problem.at_pixels(x)[rows]
-        if relative < RTOL:
-            break
-    # BIC per unknown: the pixel's own χ² must fall by more than ln n for its P to stay
-    chi2_rows = _chi2_rows(problem, _plain_residual(problem, ev), noise)
-    gain = chi2_rows0[rows] - chi2_rows[rows]
-    keep = gain > penalty
-    p_kept = torch.where(keep, p_rows, torch.zeros_like(p_rows))
-    dropped = flat[~keep]  # a pixel that keeps no P keeps its maps as the fit left them
-    x.reshape(x.shape[0], -1)[:, dropped] = x_start.reshape(x.shape[0], -1)[:, dropped]
-    problem.absorbance = image_of(p_kept) if bool(keep.any()) else None
-    final = problem.evaluate(x, log_scale)
-    chi2_after = float(_chi2_rows(problem, _plain_residual(problem, final), noise).sum())
-    problem.pixel_weight = weight
-    kept = int(keep.sum())
-    reason = (f"{kept} of {k} candidate pixel(s) lowered their own chi2 by more than ln n = {penalty:.1f} with a grey "
-              f"absorbance (the fit's chi2 {float(chi2_rows0.sum()):.4g} -> {chi2_after:.4g})")
-    return AbsorberFit(image_of(p_kept) if kept else torch.zeros(h, w, dtype=x.dtype, device=x.device), k, kept,
-                       float(chi2_rows0.sum()), chi2_after, penalty, steps, reason), x
+            relative = (ev.loss - trial.loss) / max(ev.loss, 1e-300)
+            x, p_rows, ev = x_trial, p_trial, trial
+            x_rows = problem.at_pixels(x)[self.rows]
+            if relative < RTOL:
+                break
+        return x, p_rows, ev, steps
+
+    def keep(self, x_start, x, p_rows, ev, log_scale, noise, chi2_rows0, penalty: float, steps: int):
+        """BIC per unknown: the pixel's own χ² must fall by more than ln n for its P to stay; a pixel
+        that keeps no P keeps its maps as they were. Leaves ``problem.absorbance`` at the kept P."""
+        problem, k = self.problem, int(self.rows.numel())
+        chi2_rows = _chi2_rows(problem, _plain_residual(problem, ev), noise)
+        keep = chi2_rows0[self.rows] - chi2_rows[self.rows] > penalty
+        p_kept = torch.where(keep, p_rows, torch.zeros_like(p_rows))
+        dropped = self.flat[~keep]
+        x.reshape(x.shape[0], -1)[:, dropped] = x_start.reshape(x.shape[0], -1)[:, dropped]
+        problem.absorbance = self.image_of(p_kept) if bool(keep.any()) else None
+        final = problem.evaluate(x, log_scale)
+        chi2_after = float(_chi2_rows(problem, _plain_residual(problem, final), noise).sum())
+        kept = int(keep.sum())
+        reason = (f"{kept} of {k} candidate pixel(s) lowered their own chi2 by more than ln n = {penalty:.1f} with a "
+                  f"grey absorbance (the fit's chi2 {float(chi2_rows0.sum()):.4g} -> {chi2_after:.4g})")
+        return AbsorberFit(self.image_of(p_kept) if kept else self.image_of(None), k, kept,
+                           float(chi2_rows0.sum()), chi2_after, penalty, steps, reason), x
