@@ -127,70 +127,106 @@ class _Anderson:
 
 def gauss_newton(problem: LevelProblem, x0, log_scale0, settings, progress=None, *, exact: bool) -> OptimResult:
     """LM iterations until the convergence test holds (``exact``: gradient from the backward pass)."""
-    z = problem.layout.project(x0)
-    if not problem.layout.per_pixel:
-        x0 = problem.layout.assemble(x0, z)
-    ev = problem.evaluate(x0, log_scale0, grad=exact)
-    n = problem.n_pixels
-    lam = torch.full((n,), LAMBDA0, dtype=x0.dtype, device=x0.device)
-    lam_scale = LAMBDA0
-    history = [(time.process_time(), ev.loss)]
-    accel = _Anderson(settings.anderson_memory) if settings.anderson_memory > 0 and problem.layout.per_pixel else None
-    rejections = 0
-    converged = False
+    lm = _LevenbergMarquardt(problem, x0, log_scale0, settings, exact)
     it = 0
-    step = torch.full((n,), float("nan"), dtype=x0.dtype, device=x0.device)
-    jac = col = None
-    decrement = 0.0
     for it in range(1, settings.max_iterations + 1):
-        if jac is None:
-            jac, col = curvature_and_columns(problem, ev)
-        grad = ev.grad if exact else (jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
-        dx, dz, ds, decrement = level_step(problem, jac, col, grad, ev.residual, lam, lam_scale, settings.free_scale)
+        done = lm.iterate()
+        if progress is not None:
+            progress(it, lm.ev.loss)
+        if done:
+            break
+    return lm.result(it)
+
+
+class _LevenbergMarquardt:
+    """The state of one level's LM fit: the evaluation, the coarse maps' nodes ``z``, the damping per
+    pixel ``(N,)`` and of the shared unknowns, the Anderson memory, the curvature (re-made after an
+    accepted step) and the rejections in a row."""
+
+    def __init__(self, problem: LevelProblem, x0, log_scale0, settings, exact: bool) -> None:
+        self.problem, self.settings, self.exact = problem, settings, exact
+        self.z = problem.layout.project(x0)
+        if not problem.layout.per_pixel:
+            x0 = problem.layout.assemble(x0, self.z)
+        self.ev = problem.evaluate(x0, log_scale0, grad=exact)
+        n = problem.n_pixels
+        self.lam = torch.full((n,), LAMBDA0, dtype=x0.dtype, device=x0.device)
+        self.lam_scale = LAMBDA0
+        self.history = [(time.process_time(), self.ev.loss)]
+        self.accel = (_Anderson(settings.anderson_memory)
+                      if settings.anderson_memory > 0 and problem.layout.per_pixel else None)
+        self.rejections = 0
+        self.converged = False
+        self.step = torch.full((n,), float("nan"), dtype=x0.dtype, device=x0.device)
+        self.jac = self.col = None
+        self.decrement = 0.0
+
+    def iterate(self) -> bool:
+        """One step proposed, tried, and accepted or rejected; True once converged."""
+        problem, ev = self.problem, self.ev
+        if self.jac is None:
+            self.jac, self.col = curvature_and_columns(problem, ev)
+        grad = ev.grad if self.exact else (self.jac.transpose(1, 2) @ ev.residual[..., None])[..., 0]
+        dx, dz, ds, accelerated = self._proposal(grad)
+        x_trial, z_trial = _apply(problem, ev.x, dx, self.z, dz)
+        trial = problem.evaluate(x_trial, ev.log_scale + ds, grad=self.exact)
+        before = (ev.residual**2).sum(1)
+        after = (trial.residual**2).sum(1)
+        if trial.loss < ev.loss:
+            predicted = predicted_decrease(self.jac, dx, grad, self.col, ds, (self.col * ev.residual).sum(1))
+            return self._accept(trial, z_trial, (before - after) / predicted.clamp_min(1e-30), after > before)
+        return self._reject(accelerated, after > before)
+
+    def _proposal(self, grad):
+        """The damped step (per-pixel ``dx``, coarse nodes ``dz``, scale ``ds``), clamped, and
+        extrapolated by Anderson mixing after an accepted step."""
+        problem, ev = self.problem, self.ev
+        dx, dz, ds, self.decrement = level_step(problem, self.jac, self.col, grad, ev.residual, self.lam,
+                                                self.lam_scale, self.settings.free_scale)
         dx, dz = dx.clamp(-_MAX_STEP, _MAX_STEP), dz.clamp(-_MAX_STEP, _MAX_STEP)
         if not problem.layout.per_pixel:  # the coarse maps' change where the clamped nodes put it
             dx[:, problem.layout.coarse] = problem.layout.at_pixels(dz, problem.pixels)
-        step = dx.abs().amax(dim=1)
-        accelerated = accel is not None and rejections == 0
+        self.step = dx.abs().amax(dim=1)
+        accelerated = self.accel is not None and self.rejections == 0
         if accelerated:
             point = torch.cat([problem.at_pixels(ev.x).reshape(-1), ev.log_scale.reshape(1)])
-            point_next = accel.next_point(point, torch.cat([dx.reshape(-1), ds.reshape(1)]))
-            dx = (point_next[:-1] - point[:-1]).reshape(n, N_PARAMS).clamp(-_MAX_STEP, _MAX_STEP)
+            point_next = self.accel.next_point(point, torch.cat([dx.reshape(-1), ds.reshape(1)]))
+            dx = (point_next[:-1] - point[:-1]).reshape(problem.n_pixels, N_PARAMS).clamp(-_MAX_STEP, _MAX_STEP)
             ds = point_next[-1] - point[-1]
-        x_trial, z_trial = _apply(problem, ev.x, dx, z, dz)
-        trial = problem.evaluate(x_trial, ev.log_scale + ds, grad=exact)
-        before = (ev.residual**2).sum(1)
-        after = (trial.residual**2).sum(1)
-        predicted = predicted_decrease(jac, dx, grad, col, ds, (col * ev.residual).sum(1))
-        if trial.loss < ev.loss:
-            gain = (before - after) / predicted.clamp_min(1e-30)
-            lam = next_damping(lam, True, gain, after > before)
-            lam_scale = max(lam_scale / 3.0, LAMBDA_MIN)
-            relative = (ev.loss - trial.loss) / max(ev.loss, 1e-300)
-            ev, z, jac, rejections = trial, z_trial, None, 0
-            history.append((time.process_time(), ev.loss))
-            if progress is not None:
-                progress(it, ev.loss)
-            if relative < settings.ftol or float(step.max()) < settings.xtol:
-                converged = True
-                break
+        return dx, dz, ds, accelerated
+
+    def _accept(self, trial, z_trial, gain, worse) -> bool:
+        """The trial becomes the point; less damping where the model predicted the fall well."""
+        self.lam = next_damping(self.lam, True, gain, worse)
+        self.lam_scale = max(self.lam_scale / 3.0, LAMBDA_MIN)
+        relative = (self.ev.loss - trial.loss) / max(self.ev.loss, 1e-300)
+        self.ev, self.z, self.jac, self.rejections = trial, z_trial, None, 0
+        self.history.append((time.process_time(), self.ev.loss))
+        self.converged = relative < self.settings.ftol or float(self.step.max()) < self.settings.xtol
+        return self.converged
+
+    def _reject(self, accelerated: bool, worse) -> bool:
+        """A failed extrapolation is forgotten (the plain step next); a failed plain step gets more
+        damping. Converged when no step of any damping lowers the loss: a (local) optimum of this model."""
+        if accelerated:
+            self.accel.reset()
         else:
-            if accelerated:  # the extrapolation failed: forget it and take the plain step next
-                accel.reset()
-            else:
-                lam = next_damping(lam, False, torch.zeros_like(lam), after > before)
-                lam_scale = min(lam_scale * 4.0, LAMBDA_MAX)
-            rejections += 1
-            if progress is not None:
-                progress(it, ev.loss)
-            if rejections >= _rejection_limit(problem, settings, kept=len(history) > 1) or float(step.max()) < settings.xtol:
-                converged = True  # no step of any damping lowers the loss: a (local) optimum of this model
-                break
-    if jac is None:
-        jac, col = curvature_and_columns(problem, ev)
-    # the shared unknowns' last decrement as a χ² decrease (σ² from the residual: 2·loss per element)
-    shared = decrement / max(2.0 * ev.loss / max(ev.residual.numel(), 1), 1e-300) if it else 0.0
-    return OptimResult(ev.x, ev.log_scale, ev, it, converged, history, step, jac.transpose(1, 2) @ jac, shared)
+            self.lam = next_damping(self.lam, False, torch.zeros_like(self.lam), worse)
+            self.lam_scale = min(self.lam_scale * 4.0, LAMBDA_MAX)
+        self.rejections += 1
+        limit = _rejection_limit(self.problem, self.settings, kept=len(self.history) > 1)
+        self.converged = self.rejections >= limit or float(self.step.max()) < self.settings.xtol
+        return self.converged
+
+    def result(self, iterations: int) -> OptimResult:
+        """The fit's record; the shared unknowns' last decrement as a χ² decrease (σ² from the residual:
+        2·loss per element)."""
+        ev = self.ev
+        if self.jac is None:
+            self.jac, self.col = curvature_and_columns(self.problem, ev)
+        shared = (self.decrement / max(2.0 * ev.loss / max(ev.residual.numel(), 1), 1e-300)) if iterations else 0.0
+        return OptimResult(ev.x, ev.log_scale, ev, iterations, self.converged, self.history, self.step,
+                           self.jac.transpose(1, 2) @ self.jac, shared)
 
 
 def _rejection_limit(problem: LevelProblem, settings, kept: bool) -> int:

@@ -207,7 +207,6 @@ _TOO_LONG_FOR_NOW = {
     "calibration/pipeline.py::_calibrate_band": 82, "model/thin.py::render_transmission": 81,
     "calibration/window.py::find_window": 71, "calibration/window.py::_coarse_quad": 69, "model/layered.py::SkinModel.transforms_at": 68,
     "acquire/dng.py::write_dng": 68,
-    "reconstruct/gauss_newton.py::gauss_newton": 66,
 }
 
 
