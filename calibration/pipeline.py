@@ -205,83 +205,130 @@ def _calibrate_band(
 ) -> _Band:
     """Decode a band's reference and skin frames, correct them, find the window, rectify it (``dark_sp``:
     the black frame's superpixels)."""
-    w, roi, geo = bf.wavelength_nm, inputs.roi, inputs.rig.geometry
+    w = bf.wavelength_nm
     with clock("decode"):
-        ref = _decode(inputs.paths[bf.reference.file], f"reference frame, {w:g} nm", settings)
-        skin = _decode(inputs.paths[bf.skin.file], f"skin frame, {w:g} nm", settings)
+        ref, skin, ref_name, skin_name = _decoded_pair(bf, dark, inputs, settings)
+    with clock("corrections"):
+        c = _corrected(bf, ref, skin, dark, dark_sp, inputs, settings, ref_name, skin_name)
+    with clock("window"):
+        win = find_window(
+            c.ratio, exclude=c.card, min_area_fraction=settings.window_min_area_fraction,
+            max_ring_ratio=settings.window_max_ring_ratio, edge_model=settings.window_edge_model,
+            cell_weights=c.weights, name=skin_name,
+        )
+    with clock("corrections"):
+        inside = np.zeros(c.s_img.shape, np.uint8)
+        cv2.fillConvexPoly(inside, np.round(win.corners * 16).astype(np.int32), 1, shift=4)
+        inside = inside.astype(bool)
+        sat = c.sat_skin | c.sat_ref
+        if settings.flat_field:
+            refl, defined = c.ratio * np.float32(c.factors.scale), c.defined
+        else:
+            refl, defined = reflectance_ratio(c.s_img, c.f_img, c.factors.scale, float(np.median(c.f_img[inside])))
+        valid = defined & ~sat & ~c.under
+        # the card read against the Spectralon in the reference frame (checks.card_spectrum_flags)
+        card_reading = (c.gray_ref / float(np.median(c.f_img[inside])) * c.factors.spectralon_reflectance
+                        if c.gray_ref is not None else None)
+        sat_fraction = float(np.mean(sat[inside]))
+        under_fraction = float(np.mean((c.under & ~sat)[inside]))
+    with clock("rectify"):
+        rectified = rectify(refl, win.corners, inputs.rig.geometry.rectify_px, settings.interpolation)
+        valid_rect = rectify(valid.astype(np.float32), win.corners, inputs.rig.geometry.rectify_px, "linear")
+    flags = _band_flags(w, c, win, sat_fraction, under_fraction, settings)
+    entry = {
+        "wavelength_nm": w,
+        "skin_file": bf.skin.file,
+        "reference_file": bf.reference.file,
+        "exposure": {"skin": bf.skin.exposure.model_dump(), "reference": bf.reference.exposure.model_dump()},
+        **c.factors.as_dict(),
+        "gray_card_dn": None if c.gray_ref is None else {"reference": c.gray_ref, "skin": c.gray_skin},
+        "gray_card_reading": _finite(card_reading) if card_reading is not None else None,
+        "window_corners_px": superpixel_to_raw_xy(win.corners, c.centroid).tolist(),
+        "cell_centroid_px": list(c.centroid),
+        "window_edge_rms_px": 2.0 * win.edge_rms_px,
+        "window_blur_px": _finite(2.0 * win.blur_px),
+        "saturated_fraction": sat_fraction,
+        "underexposed_fraction": under_fraction,
+    }
+    return _Band(rectified, valid_rect, flags, thumbnail(c.s_img, win.corners, c.box), entry)
+
+
+def _decoded_pair(bf: BandFrames, dark: Optional[RawImage], inputs: _Inputs, settings: CalibrationSettings):
+    """The band's reference and skin frames decoded, their sizes checked against each other and the
+    black frame; returns them with the names errors give them."""
+    w = bf.wavelength_nm
+    ref = _decode(inputs.paths[bf.reference.file], f"reference frame, {w:g} nm", settings)
+    skin = _decode(inputs.paths[bf.skin.file], f"skin frame, {w:g} nm", settings)
     skin_name, ref_name = f"{skin.path} (skin frame, {w:g} nm)", f"{ref.path} (reference frame, {w:g} nm)"
     for frame, name in ((ref, ref_name), (skin, skin_name)):
         if dark is not None and frame.shape != dark.shape:
             raise CalibrationError(f"{name}: {frame.shape[1]}×{frame.shape[0]} px, the black frame {dark.shape[1]}×{dark.shape[0]}")
     if ref.shape != skin.shape:
         raise CalibrationError(f"{skin_name}: {skin.shape[1]}×{skin.shape[0]} px, its reference {ref.shape[1]}×{ref.shape[0]}")
-    with clock("corrections"):
-        s_img = subtract_dark(skin.superpixel(), dark_sp)
-        f_img = subtract_dark(ref.superpixel(), dark_sp)
-        flat = ref.values if dark is None else ref.values - dark.values
-        weights, centroid = cell_weights(flat), cell_centroid(flat)
-        sat_skin, sat_ref = skin.superpixel_saturated(), ref.superpixel_saturated()
-        low = settings.underexposure_level * 4.0
-        under = (s_img < low * skin.full_scale_dn) | (f_img < low * ref.full_scale_dn)
-        box = roi_to_superpixels(roi, s_img.shape, settings.gray_card_inset) if roi is not None else None
-        card = [roi_to_superpixels(roi, s_img.shape)] if roi is not None else []
-        check_reference(s_img, f_img, card, ref_name)
-        gray_ref = gray_skin = None
-        if settings.gray_card:
-            gray_ref = gray_card_level(f_img, box, sat_ref, ref_name)
-            gray_skin = gray_card_level(s_img, box, sat_skin, skin_name)
-        factors = band_factors(
-            settings, inputs.rig, w, gray_reference=gray_ref, gray_skin=gray_skin,
-            exposure_reference=bf.reference.exposure, exposure_skin=bf.skin.exposure,
-        )
-        # skin over reference at the same camera pixels: the reflectance up to the band's scalar
-        # factors, flat across the frame (vignetting and the flash's shape cancel)
-        ratio, defined = reflectance_ratio(s_img, f_img, 1.0)
-    with clock("window"):
-        win = find_window(
-            ratio, exclude=card, min_area_fraction=settings.window_min_area_fraction,
-            max_ring_ratio=settings.window_max_ring_ratio, edge_model=settings.window_edge_model,
-            cell_weights=weights, name=skin_name,
-        )
-    with clock("corrections"):
-        inside = np.zeros(s_img.shape, np.uint8)
-        cv2.fillConvexPoly(inside, np.round(win.corners * 16).astype(np.int32), 1, shift=4)
-        inside = inside.astype(bool)
-        sat = sat_skin | sat_ref
-        if settings.flat_field:
-            refl = ratio * np.float32(factors.scale)
-        else:
-            refl, defined = reflectance_ratio(s_img, f_img, factors.scale, float(np.median(f_img[inside])))
-        valid = defined & ~sat & ~under
-        # the card read against the Spectralon in the reference frame (checks.card_spectrum_flags)
-        card_reading = gray_ref / float(np.median(f_img[inside])) * factors.spectralon_reflectance if gray_ref is not None else None
-        sat_fraction = float(np.mean(sat[inside]))
-        under_fraction = float(np.mean((under & ~sat)[inside]))
-    with clock("rectify"):
-        rectified = rectify(refl, win.corners, geo.rectify_px, settings.interpolation)
-        valid_rect = rectify(valid.astype(np.float32), win.corners, geo.rectify_px, "linear")
+    return ref, skin, ref_name, skin_name
+
+
+@dataclass
+class _Corrected:
+    """A band's frames corrected, in superpixels: skin and reference less the black frame, the cells'
+    weights and centroid, saturation and under-exposure masks, the gray card's box and levels, the
+    band's factors and the skin-over-reference ratio (with where it is defined)."""
+
+    s_img: np.ndarray
+    f_img: np.ndarray
+    weights: np.ndarray
+    centroid: tuple
+    sat_skin: np.ndarray
+    sat_ref: np.ndarray
+    under: np.ndarray
+    box: object
+    card: list
+    gray_ref: Optional[float]
+    gray_skin: Optional[float]
+    factors: object
+    ratio: np.ndarray
+    defined: np.ndarray
+
+
+def _corrected(bf: BandFrames, ref: RawImage, skin: RawImage, dark: Optional[RawImage], dark_sp: Optional[np.ndarray],
+               inputs: _Inputs, settings: CalibrationSettings, ref_name: str, skin_name: str) -> _Corrected:
+    """Black frame subtracted, exposure masks, the reference and gray card checked, the band's factors,
+    and the ratio of skin over reference at the same camera pixels."""
+    roi = inputs.roi
+    s_img = subtract_dark(skin.superpixel(), dark_sp)
+    f_img = subtract_dark(ref.superpixel(), dark_sp)
+    flat = ref.values if dark is None else ref.values - dark.values
+    sat_skin, sat_ref = skin.superpixel_saturated(), ref.superpixel_saturated()
+    low = settings.underexposure_level * 4.0
+    under = (s_img < low * skin.full_scale_dn) | (f_img < low * ref.full_scale_dn)
+    box = roi_to_superpixels(roi, s_img.shape, settings.gray_card_inset) if roi is not None else None
+    card = [roi_to_superpixels(roi, s_img.shape)] if roi is not None else []
+    check_reference(s_img, f_img, card, ref_name)
+    gray_ref = gray_skin = None
+    if settings.gray_card:
+        gray_ref = gray_card_level(f_img, box, sat_ref, ref_name)
+        gray_skin = gray_card_level(s_img, box, sat_skin, skin_name)
+    factors = band_factors(
+        settings, inputs.rig, bf.wavelength_nm, gray_reference=gray_ref, gray_skin=gray_skin,
+        exposure_reference=bf.reference.exposure, exposure_skin=bf.skin.exposure,
+    )
+    # skin over reference at the same camera pixels: the reflectance up to the band's scalar
+    # factors, flat across the frame (vignetting and the flash's shape cancel)
+    ratio, defined = reflectance_ratio(s_img, f_img, 1.0)
+    return _Corrected(s_img, f_img, cell_weights(flat), cell_centroid(flat), sat_skin, sat_ref, under, box, card,
+                      gray_ref, gray_skin, factors, ratio, defined)
+
+
+def _band_flags(w: float, c: _Corrected, win, sat_fraction: float, under_fraction: float,
+                settings: CalibrationSettings) -> list[Flag]:
+    """The band's exposure, gray card and window-edge flags."""
     flags = exposure_flags(w, sat_fraction, under_fraction, settings)
     if settings.gray_card:
-        flags += gray_card_flags(w, factors.flash_factor, settings)
+        flags += gray_card_flags(w, c.factors.flash_factor, settings)
     if settings.window_edge_model and win.model_sides < 4:
         failed = 4 - win.model_sides
         flags.append(Flag("edge_model", w, f"{w:g} nm: edge model failed on {failed} window side(s); derivative peaks used", failed))
-    entry = {
-        "wavelength_nm": w,
-        "skin_file": bf.skin.file,
-        "reference_file": bf.reference.file,
-        "exposure": {"skin": bf.skin.exposure.model_dump(), "reference": bf.reference.exposure.model_dump()},
-        **factors.as_dict(),
-        "gray_card_dn": None if gray_ref is None else {"reference": gray_ref, "skin": gray_skin},
-        "gray_card_reading": _finite(card_reading) if card_reading is not None else None,
-        "window_corners_px": superpixel_to_raw_xy(win.corners, centroid).tolist(),
-        "cell_centroid_px": list(centroid),
-        "window_edge_rms_px": 2.0 * win.edge_rms_px,
-        "window_blur_px": _finite(2.0 * win.blur_px),
-        "saturated_fraction": sat_fraction,
-        "underexposed_fraction": under_fraction,
-    }
-    return _Band(rectified, valid_rect, flags, thumbnail(s_img, win.corners, box), entry)
+    return flags
 
 
 def _align(stack: np.ndarray, valid: np.ndarray, inputs: _Inputs, settings: CalibrationSettings):
