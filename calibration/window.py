@@ -134,23 +134,7 @@ def find_window(
             raise WindowNotFoundError(f"{name}: window sides are parallel; no corners")
     blur, modelled = float("nan"), 0
     if edge_model:
-        refits = [fit_edge_line(crop, quad[i], quad[(i + 1) % 4], n, cell_weights) for i, (n, _) in enumerate(lines)]
-        sigmas = [r[2] for r in refits if r is not None]
-        if len(sigmas) >= 3:
-            # One PSF blurs every side: a side whose blur strays from the others' (a freckle or a hair on
-            # the edge pulled its fit into another minimum) is fitted again with theirs.
-            typical = float(np.median(sigmas))
-            for i, (n, _) in enumerate(lines):
-                if refits[i] is None or abs(refits[i][2] - typical) > _BLUR_TOLERANCE * typical:
-                    refits[i] = fit_edge_line(crop, quad[i], quad[(i + 1) % 4], n, cell_weights, typical)
-            sigmas = [r[2] for r in refits if r is not None]
-        lines = [(r[0], r[1]) if r is not None else line for r, line in zip(refits, lines)]
-        modelled = len(sigmas)
-        blur = float(np.median(sigmas)) if sigmas else blur
-        refined = _intersect(lines)
-        if not np.all(np.isfinite(refined)):
-            raise WindowNotFoundError(f"{name}: window sides are parallel; no corners")
-        quad = refined
+        quad, modelled, blur = _edge_model_corners(crop, quad, lines, cell_weights, name)
     res = np.concatenate(residuals)
     return Window(
         corners=quad + origin,
@@ -161,18 +145,68 @@ def find_window(
     )
 
 
+def _edge_model_corners(crop: np.ndarray, quad: np.ndarray, lines, cell_weights, name: str):
+    """Every side refitted with the physical edge model (``_edge_model.fit_edge_line``); returns the
+    corners the refitted sides meet at, how many sides the model fitted and the PSF's σ (px)."""
+    refits = [fit_edge_line(crop, quad[i], quad[(i + 1) % 4], n, cell_weights) for i, (n, _) in enumerate(lines)]
+    sigmas = [r[2] for r in refits if r is not None]
+    if len(sigmas) >= 3:
+        # One PSF blurs every side: a side whose blur strays from the others' (a freckle or a hair on
+        # the edge pulled its fit into another minimum) is fitted again with theirs.
+        typical = float(np.median(sigmas))
+        for i, (n, _) in enumerate(lines):
+            if refits[i] is None or abs(refits[i][2] - typical) > _BLUR_TOLERANCE * typical:
+                refits[i] = fit_edge_line(crop, quad[i], quad[(i + 1) % 4], n, cell_weights, typical)
+        sigmas = [r[2] for r in refits if r is not None]
+    lines = [(r[0], r[1]) if r is not None else line for r, line in zip(refits, lines)]
+    refined = _intersect(lines)
+    if not np.all(np.isfinite(refined)):
+        raise WindowNotFoundError(f"{name}: window sides are parallel; no corners")
+    return refined, len(sigmas), float(np.median(sigmas)) if sigmas else float("nan")
+
+
 def _coarse_quad(img: np.ndarray, exclude, min_area_fraction: float, max_ring_ratio: float, name: str) -> np.ndarray:
+    """The one bright, four-sided, dark-surrounded region of the image as its contour's four sides'
+    points; raises ``WindowNotFoundError`` saying why where there is none or more than one."""
     h, w = img.shape
-    smooth = cv2.GaussianBlur(img, (0, 0), 1.5)
-    # The gray card's region, widened by its blurred border, is cut out: it takes no part in the
-    # threshold and can neither be taken for the window nor merge with it.
+    allowed, cut = _allowed_region(h, w, exclude)
+    card = "; the gray card's region is left out" if exclude else ""
+    bright = _bright_regions(img, allowed, card, name)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(bright, connectivity=8)
+    min_area = min_area_fraction * h * w
+    candidates, reasons = [], []
+    for k in range(1, count):
+        x, y, bw, bh, area = (int(v) for v in stats[k])
+        if area < min_area:
+            continue
+        found = _candidate(img, labels, k, (x, y, bw, bh), cut, max_ring_ratio)
+        (reasons if isinstance(found, str) else candidates).append(found)
+    if not candidates:
+        why = "; ".join(reasons[:3]) if reasons else f"no bright region of at least {min_area:.0f} px"
+        raise WindowNotFoundError(f"{name}: no window found ({why}{card})")
+    if len(candidates) > 1:
+        centres = ", ".join(f"({c[:, 0].mean():.0f}, {c[:, 1].mean():.0f})" for c in candidates)
+        raise WindowNotFoundError(f"{name}: {len(candidates)} window candidates at {centres} px; expected one (ambiguous)")
+    return candidates[0]
+
+
+def _allowed_region(h: int, w: int, exclude):
+    """The pixels that may hold the window ``(H, W)`` and the cut-out boxes: the gray card's region,
+    widened by its blurred border, takes no part in the threshold and can neither be taken for the
+    window nor merge with it."""
     allowed, cut = np.ones((h, w), bool), []
     for e in exclude:
         ex0, ey0 = (max(int(np.floor(v)) - _CARD_MARGIN_PX, 0) for v in e[:2])
         ex1, ey1 = (max(int(np.ceil(v)) + _CARD_MARGIN_PX, 0) for v in e[2:])
         allowed[ey0:ey1, ex0:ex1] = False
         cut.append((ex0 - 1, ey0 - 1, ex1 + 1, ey1 + 1))
-    card = "; the gray card's region is left out" if exclude else ""
+    return allowed, cut
+
+
+def _bright_regions(img: np.ndarray, allowed: np.ndarray, card: str, name: str) -> np.ndarray:
+    """Otsu's bright class of the smoothed image (uint8 mask), opened, and closed wider than a hair."""
+    h, w = img.shape
+    smooth = cv2.GaussianBlur(img, (0, 0), 1.5)
     values = smooth[allowed]
     if values.size == 0:
         raise WindowNotFoundError(f"{name}: no window found (the gray card's region covers the image)")
@@ -192,44 +226,32 @@ def _coarse_quad(img: np.ndarray, exclude, min_area_fraction: float, max_ring_ra
     # Hairs and dark freckles crossing the window (or its edge) would split or notch it: a closing wider
     # than a hair bridges them. Its width follows the frame, of which the window is a large part.
     k = 2 * max(1, int(round(_HAIR_BRIDGE * min(h, w)))) + 1
-    bright = cv2.morphologyEx(bright, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(bright, connectivity=8)
-    min_area = min_area_fraction * h * w
-    candidates, reasons = [], []
-    for k in range(1, count):
-        x, y, bw, bh, area = (int(v) for v in stats[k])
-        if area < min_area:
-            continue
-        where = f"region at x {x}–{x + bw}, y {y}–{y + bh}"
-        if x == 0 or y == 0 or x + bw >= w or y + bh >= h:
-            reasons.append(f"{where} touches the image border")
-            continue
-        if any(x < c[2] and c[0] < x + bw and y < c[3] and c[1] < y + bh for c in cut):
-            reasons.append(f"{where} touches the gray card's region (the card's border?)")
-            continue
-        region = (labels[y : y + bh, x : x + bw] == k).astype(np.uint8)
-        contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        contour = max(contours, key=cv2.contourArea) + np.array([x, y])
-        quad = _four_sides(contour)
-        if quad is None:
-            reasons.append(f"{where} is not four-sided")
-            continue
-        fill = cv2.contourArea(contour) / max(cv2.contourArea(quad.astype(np.float32)), 1.0)
-        if fill < 0.9:
-            reasons.append(f"{where} fills only {fill:.0%} of its quadrilateral")
-            continue
-        ratio = _ring_ratio(img, quad)
-        if not ratio < max_ring_ratio:
-            reasons.append(f"{where}: its surround is not dark (ratio {ratio:.2f} ≥ {max_ring_ratio:g})")
-            continue
-        candidates.append(_contour_sides(contour.reshape(-1, 2).astype(np.float64), quad))
-    if not candidates:
-        why = "; ".join(reasons[:3]) if reasons else f"no bright region of at least {min_area:.0f} px"
-        raise WindowNotFoundError(f"{name}: no window found ({why}{card})")
-    if len(candidates) > 1:
-        centres = ", ".join(f"({c[:, 0].mean():.0f}, {c[:, 1].mean():.0f})" for c in candidates)
-        raise WindowNotFoundError(f"{name}: {len(candidates)} window candidates at {centres} px; expected one (ambiguous)")
-    return candidates[0]
+    return cv2.morphologyEx(bright, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+
+
+def _candidate(img: np.ndarray, labels: np.ndarray, k: int, box, cut, max_ring_ratio: float):
+    """Region ``k`` (bounding ``box`` x, y, w, h) as a window candidate (its sides' points), or the
+    reason it is none."""
+    h, w = img.shape
+    x, y, bw, bh = box
+    where = f"region at x {x}–{x + bw}, y {y}–{y + bh}"
+    if x == 0 or y == 0 or x + bw >= w or y + bh >= h:
+        return f"{where} touches the image border"
+    if any(x < c[2] and c[0] < x + bw and y < c[3] and c[1] < y + bh for c in cut):
+        return f"{where} touches the gray card's region (the card's border?)"
+    region = (labels[y : y + bh, x : x + bw] == k).astype(np.uint8)
+    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    contour = max(contours, key=cv2.contourArea) + np.array([x, y])
+    quad = _four_sides(contour)
+    if quad is None:
+        return f"{where} is not four-sided"
+    fill = cv2.contourArea(contour) / max(cv2.contourArea(quad.astype(np.float32)), 1.0)
+    if fill < 0.9:
+        return f"{where} fills only {fill:.0%} of its quadrilateral"
+    ratio = _ring_ratio(img, quad)
+    if not ratio < max_ring_ratio:
+        return f"{where}: its surround is not dark (ratio {ratio:.2f} ≥ {max_ring_ratio:g})"
+    return _contour_sides(contour.reshape(-1, 2).astype(np.float64), quad)
 
 
 def _separability(values: np.ndarray, level: float) -> float:
