@@ -54,68 +54,83 @@ def render_transmission(
     back = back or front
     if back.shape != front.shape or abs(back.mm_per_pixel - front.mm_per_pixel) > 1e-9:
         raise ValueError("front and back maps must have the same grid")
-    settings, rs, o = renderer.settings, renderer.settings.render, renderer.settings.optics
+    rs, o = renderer.settings.render, renderer.settings.optics
     wl = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
     b, h, w = front.shape
-    dtype, device = front.dtype, front.device
     border = light.border_px(front.mm_per_pixel, rs.border_mm)
-    model = renderer.model
-    if settings.profiles != "diffusion":
-        # the transport tables hold the two-layer skin's layers (air above the epidermis, dermis below);
-        # this geometry's layers (a dermis slab between epidermes) exist in diffusion only
-        settings = settings.model_copy(update={"profiles": "diffusion"})
-        model = SkinModel(settings, model.cache_dir)
-    spectra = model.spectra(wl)
-
-    def absorption(maps: SkinMaps):
-        p = maps.params()
-        padded = type(p)(*(_replicate(v, border) for v in p.values()))
-        ab = model.absorption(padded, spectra)
-        return [x.permute(0, 3, 1, 2) for x in (ab.epidermis, ab.dermis, ab.interface_absorbance)]
-
-    epi_b, _, p_b = absorption(back)
-    epi_f, derm_f, p_f = absorption(front)
-    flat = lambda x: x.reshape(b * wl.numel(), *x.shape[-2:])  # noqa: E731
-    att_b, att_f = flat(torch.exp(-p_b)), flat(torch.exp(-p_f))
-    tables = model.tables(wl).to(device, dtype)
-    thin = load_thin_dermis_tables(wl, dermis_mm, settings, model.cache_dir).to(device, dtype)
-    plan = BlurPlan.build(tables.variances_mm2, front.mm_per_pixel, blur or rs.blur,
-                          boundary="replicate" if light.extends else "zero",
-                          identity_below_px=rs.identity_below_px, pyramid_min_px=rs.pyramid_min_px)
-    lk_b, lk_f = lookup(tables.sigma_a_per_mm, epi_b), lookup(tables.sigma_a_per_mm, epi_f)
-    lk_d = lookup(thin.sigma_a_per_mm, derm_f)
-    col = lambda t, layer, p: columns(t, layer, p, plan)  # noqa: E731
-    t1p, r1m = col(tables, "epidermis", "T_plus"), col(tables, "epidermis", "R_minus")
-    r3p, t3p = col(tables, "epidermis", "R_minus"), col(tables, "epidermis", "T_minus")
-    r2p, t2p, r2m = col(thin, "thin_dermis", "R_plus"), col(thin, "thin_dermis", "T_plus"), col(thin, "thin_dermis", "R_minus")
+    s = _Slab.build(renderer, front, back, light, wl, dermis_mm, border, blur)
 
     def g(f, sets):
-        return gather(f, sets, plan, lean=rs.checkpoint)
-
+        return gather(f, sets, s.plan, lean=rs.checkpoint)
 
     f_t = entry_transmittance(o.n_epidermis, o.n_above)
-    irradiance = light.irradiance(h, w, border, front.mm_per_pixel, dtype, device)
+    irradiance = light.irradiance(h, w, border, front.mm_per_pixel, front.dtype, front.device)
     phi = (f_t * irradiance).expand(b, wl.numel(), *irradiance.shape[-2:]).reshape(-1, *irradiance.shape[-2:])
-
-    (t1,) = g(phi, [(t1p, lk_b)])
-    current = att_b * t1
-    into_dermis = current
-    for _ in range(round_trips):
-        (r2,) = g(current, [(r2p, lk_d)])
-        (r1,) = g(att_b * r2, [(r1m, lk_b)])
-        current = att_b * r1
-        into_dermis = into_dermis + current
-    (t2,) = g(into_dermis, [(t2p, lk_d)])
-    current = att_f * t2
-    into_front = current
-    for _ in range(round_trips):
-        (r3,) = g(current, [(r3p, lk_f)])
-        (r2b,) = g(att_f * r3, [(r2m, lk_d)])
-        current = att_f * r2b
-        into_front = into_front + current
-    (m,) = g(into_front, [(t3p, lk_f)])
+    c, lk_b, lk_f, lk_d = s.cols, s.lk_back, s.lk_front, s.lk_dermis
+    (t1,) = g(phi, [(c["T1_plus"], lk_b)])
+    into_dermis = _round_trips(g, s.att_back * t1, s.att_back, (c["R2_plus"], lk_d), (c["R1_minus"], lk_b), round_trips)
+    (t2,) = g(into_dermis, [(c["T2_plus"], lk_d)])
+    into_front = _round_trips(g, s.att_front * t2, s.att_front, (c["R3_plus"], lk_f), (c["R2_minus"], lk_d), round_trips)
+    (m,) = g(into_front, [(c["T3_plus"], lk_f)])
     exitance = m.reshape(b, wl.numel(), *m.shape[-2:])
     if border:
         exitance = exitance[..., border:border + h, border:border + w]
     image = exitance * exit_factor(o.n_epidermis, o.n_above, math.cos(math.radians(view_angle_deg)))
     return RenderResult(exitance, image, wl, [round_trips] * wl.numel(), front.mm_per_pixel)
+
+
+def _round_trips(g, current: torch.Tensor, attenuation: torch.Tensor, down, up, round_trips: int) -> torch.Tensor:
+    """The light that enters a pair of layers plus what ``round_trips`` inter-reflections between them
+    send back the same way: each trip reflected by the layer below (``down``: its column and lookup),
+    through the interface, reflected by the layer above (``up``) and through the interface again."""
+    total = current
+    for _ in range(round_trips):
+        (reflected,) = g(current, [down])
+        (returned,) = g(attenuation * reflected, [up])
+        current = attenuation * returned
+        total = total + current
+    return total
+
+
+class _Slab:
+    """What the slab's gathers share: the blur plan, the interfaces' attenuation on the back (lit) and
+    front (viewed) side ``(B·L, Hp, Wp)``, the lookups of both epidermes and of the thin dermis, and the
+    layers' profile columns (T1+ … T3+ in the order the light meets them)."""
+
+    def __init__(self, plan, att_back, att_front, lk_back, lk_front, lk_dermis, cols) -> None:
+        self.plan, self.att_back, self.att_front = plan, att_back, att_front
+        self.lk_back, self.lk_front, self.lk_dermis, self.cols = lk_back, lk_front, lk_dermis, cols
+
+    @classmethod
+    def build(cls, renderer: SkinRenderer, front: SkinMaps, back: SkinMaps, light: Light, wl: torch.Tensor,
+              dermis_mm: float, border: int, blur: str | None) -> _Slab:
+        settings, rs, model = renderer.settings, renderer.settings.render, renderer.model
+        if settings.profiles != "diffusion":
+            # the transport tables hold the two-layer skin's layers (air above the epidermis, dermis below);
+            # this geometry's layers (a dermis slab between epidermes) exist in diffusion only
+            settings = settings.model_copy(update={"profiles": "diffusion"})
+            model = SkinModel(settings, model.cache_dir)
+        spectra = model.spectra(wl)
+
+        def absorption(maps: SkinMaps):
+            p = maps.params()
+            padded = type(p)(*(_replicate(v, border) for v in p.values()))
+            ab = model.absorption(padded, spectra)
+            return [x.permute(0, 3, 1, 2) for x in (ab.epidermis, ab.dermis, ab.interface_absorbance)]
+
+        epi_b, _, p_b = absorption(back)
+        epi_f, derm_f, p_f = absorption(front)
+        n = front.shape[0] * wl.numel()
+        tables = model.tables(wl).to(front.device, front.dtype)
+        thin = load_thin_dermis_tables(wl, dermis_mm, settings, model.cache_dir).to(front.device, front.dtype)
+        plan = BlurPlan.build(tables.variances_mm2, front.mm_per_pixel, blur or rs.blur,
+                              boundary="replicate" if light.extends else "zero",
+                              identity_below_px=rs.identity_below_px, pyramid_min_px=rs.pyramid_min_px)
+        names = {"T1_plus": (tables, "epidermis", "T_plus"), "R1_minus": (tables, "epidermis", "R_minus"),
+                 "R3_plus": (tables, "epidermis", "R_minus"), "T3_plus": (tables, "epidermis", "T_minus"),
+                 "R2_plus": (thin, "thin_dermis", "R_plus"), "T2_plus": (thin, "thin_dermis", "T_plus"),
+                 "R2_minus": (thin, "thin_dermis", "R_minus")}
+        cols = {k: columns(t, layer, prof, plan) for k, (t, layer, prof) in names.items()}
+        return cls(plan, torch.exp(-p_b).reshape(n, *p_b.shape[-2:]), torch.exp(-p_f).reshape(n, *p_f.shape[-2:]),
+                   lookup(tables.sigma_a_per_mm, epi_b), lookup(tables.sigma_a_per_mm, epi_f),
+                   lookup(thin.sigma_a_per_mm, derm_f), cols)
