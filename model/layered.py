@@ -174,52 +174,69 @@ class SkinModel:
         spectra = spectra if spectra is not None else self.spectra(wavelength_nm)
         ab = LayerAbsorption(sigma_a_epidermis_per_mm, sigma_a_dermis_per_mm, interface_absorbance)
         attenuation = torch.exp(-interface_absorbance)
-        eta_top, eta_mid, eta_derm = self._etas()
         s_epi = spectra.scattering_epidermis.to(ab.epidermis)
         s_derm = spectra.scattering_dermis.to(ab.epidermis)
-        transport = self.settings.profiles == "transport"
         d = o.epidermis_thickness_mm if thickness_mm is None else thickness_mm
-        if method == "exact" and transport:
-            # transport: adding-doubling's totals, the Monte Carlo's shapes (model/layer_shapes.py)
-            tt = layer_totals(ab.epidermis, s_epi, d, ab.dermis, s_derm, o.n_above, o.n_epidermis, o.n_dermis,
-                              self.settings.handover)
-            targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)
-            if k_per_mm is None:
-                epi, r2 = list(targets), tt.R2_plus
-            else:
-                shape_epi, shape_r2 = shape_transforms(ab.epidermis, s_epi, d, ab.dermis, s_derm, k_per_mm)
-                epi = [t[..., None] * shape for t, shape in zip(targets, shape_epi)]
-                r2 = tt.R2_plus[..., None] * shape_r2
-            epi[1] = epi[1] + self._collimated(tt, k_per_mm)
+        if method == "exact" and self.settings.profiles == "transport":
+            epi, r2 = self._transport_exact(ab, s_epi, s_derm, d, k_per_mm)
         elif method == "exact":
-            if k_per_mm is None:
-                epi = multipole_totals(ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
-                r2 = multipole_totals(ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus
-            else:
-                k = torch.as_tensor(k_per_mm).to(ab.epidermis)
-                epi = multipole_hankel(k, ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
-                r2 = multipole_hankel(k, ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus
+            epi, r2 = self._diffusion_exact(ab, s_epi, s_derm, d, k_per_mm)
         else:
-            tab = self.tables(wavelength_nm).to(ab.epidermis.device, ab.epidermis.dtype)
-            if k_per_mm is None:
-                value = tab.totals
-            else:
-                k = torch.as_tensor(k_per_mm).to(ab.epidermis)
-
-                def value(layer, profile, sa):
-                    return gaussian_sum_hankel(tab.lookup(layer, profile, sa), tab.variances_mm2, k)
-
-            epi = [value("epidermis", p, ab.epidermis) for p in ("R_plus", "T_plus", "R_minus", "T_minus")]
-            r2 = value("dermis", "R_plus", ab.dermis)
-            if transport:
-                epi[1] = epi[1] + self._collimated(collimated_transmission(ab.epidermis, s_epi, d, ab.dermis, s_derm),
-                                                   k_per_mm)
-                if self.settings.handover == "angular":
-                    kappa = self._handover_at(tab, wavelength_nm, ab.epidermis, ab.dermis)
-                    r2 = r2 * (kappa if k_per_mm is None else kappa[..., None])
+            epi, r2 = self._tabulated(ab, s_epi, s_derm, d, wavelength_nm, k_per_mm)
         if k_per_mm is not None:
             attenuation = attenuation[..., None]
         return LayerTransforms(epi[0], epi[1], epi[2], epi[3], r2, attenuation)
+
+    def _transport_exact(self, ab: LayerAbsorption, s_epi, s_derm, d, k_per_mm):
+        """transport: adding-doubling's totals, the Monte Carlo's shapes (model/layer_shapes.py); the
+        epidermis's four profiles and the dermis's R₂⁺."""
+        o = self.settings.optics
+        tt = layer_totals(ab.epidermis, s_epi, d, ab.dermis, s_derm, o.n_above, o.n_epidermis, o.n_dermis,
+                          self.settings.handover)
+        targets = (tt.R1_plus, tt.T1_diffuse, tt.R1_minus, tt.T1_minus)
+        if k_per_mm is None:
+            epi, r2 = list(targets), tt.R2_plus
+        else:
+            shape_epi, shape_r2 = shape_transforms(ab.epidermis, s_epi, d, ab.dermis, s_derm, k_per_mm)
+            epi = [t[..., None] * shape for t, shape in zip(targets, shape_epi)]
+            r2 = tt.R2_plus[..., None] * shape_r2
+        epi[1] = epi[1] + self._collimated(tt, k_per_mm)
+        return epi, r2
+
+    def _diffusion_exact(self, ab: LayerAbsorption, s_epi, s_derm, d, k_per_mm):
+        """diffusion: the multipole's totals or Hankel transforms (DWRR08 §3)."""
+        o = self.settings.optics
+        eta_top, eta_mid, eta_derm = self._etas()
+        if k_per_mm is None:
+            epi = multipole_totals(ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
+            r2 = multipole_totals(ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus
+        else:
+            k = torch.as_tensor(k_per_mm).to(ab.epidermis)
+            epi = multipole_hankel(k, ab.epidermis, s_epi, d, eta_top, eta_mid, source_depth=o.source_depth)
+            r2 = multipole_hankel(k, ab.dermis, s_derm, math.inf, eta_derm, 1.0).R_plus
+        return epi, r2
+
+    def _tabulated(self, ab: LayerAbsorption, s_epi, s_derm, d, wavelength_nm, k_per_mm):
+        """From the renderer's own tables (their totals, or their Gaussian sums' Hankel transforms), with
+        the unscattered beam and the hand-over factor under ``profiles: transport``."""
+        tab = self.tables(wavelength_nm).to(ab.epidermis.device, ab.epidermis.dtype)
+        if k_per_mm is None:
+            value = tab.totals
+        else:
+            k = torch.as_tensor(k_per_mm).to(ab.epidermis)
+
+            def value(layer, profile, sa):
+                return gaussian_sum_hankel(tab.lookup(layer, profile, sa), tab.variances_mm2, k)
+
+        epi = [value("epidermis", p, ab.epidermis) for p in ("R_plus", "T_plus", "R_minus", "T_minus")]
+        r2 = value("dermis", "R_plus", ab.dermis)
+        if self.settings.profiles == "transport":
+            epi[1] = epi[1] + self._collimated(collimated_transmission(ab.epidermis, s_epi, d, ab.dermis, s_derm),
+                                               k_per_mm)
+            if self.settings.handover == "angular":
+                kappa = self._handover_at(tab, wavelength_nm, ab.epidermis, ab.dermis)
+                r2 = r2 * (kappa if k_per_mm is None else kappa[..., None])
+        return epi, r2
 
     def _handover_at(self, tab: ProfileTables, wavelength_nm, sa_epidermis, sa_dermis) -> torch.Tensor:
         """κ ``(..., L)`` from the grid at the tables' positions of both layers' σa (as the renderer)."""

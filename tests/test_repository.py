@@ -202,12 +202,9 @@ MAX_FUNCTION_LINES = 60
 #: The Monte Carlo walk, the edge fit and the Cramér–Rao routine: numeric kernels, exempt.
 _KERNELS = {"model/transport/walk.py::walk", "calibration/_edge_model.py::fit_edge_line",
             "reconstruct/grid_choice.py::crb_pixel_variance"}
-#: Still longer than the limit (lines from `def` to the end, 2026-12-06): to be split, and never to grow.
-_TOO_LONG_FOR_NOW = {
-   
-    "model/layered.py::SkinModel.transforms_at": 68,
-    "acquire/dng.py::write_dng": 68,
-}
+#: Functions still longer than the limit, with their length as a ceiling (none since 2026-12-06; a
+#: function allowed here for a while must be listed with its length and never grow).
+_TOO_LONG_FOR_NOW: dict[str, int] = {}
 
 
 def _function_lengths(path: Path) -> dict[str, int]:
