@@ -12,6 +12,7 @@ import typer
 
 from ..formats.errors import InputError
 from ..formats.version import software_version
+from ..formats.threads import THREADS_HELP, command_threads
 
 __all__ = ["capture_progress", "register"]
 
@@ -53,6 +54,7 @@ def capture(
     physics: Optional[str] = typer.Option(
         None, "--physics", help="Simulated skin rendered by diffusion (the model) or transport (the Monte Carlo reference; slow: use a small cube)."),
     photons: Optional[int] = typer.Option(None, "--photons", help="--physics transport: photons per wavelength node of each band."),
+    threads: Optional[str] = typer.Option(None, "--threads", help=THREADS_HELP),
 ) -> None:
     """Capture a session: a black frame, a Spectralon reference per band, the skin at every band.
 
@@ -68,6 +70,7 @@ def capture(
     from .simulation_settings import truth_overrides  # noqa: PLC0415
 
     rig, sim = _session_rig(out, sim, sim_camera, rig_file, wheel_port, resume)
+    command_threads(threads)
     truth = truth_overrides(physics, photons)
     start = time.perf_counter()
     try:

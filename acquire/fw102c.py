@@ -41,12 +41,15 @@ A move that ends at the wrong position is repeated up to ``retries`` times. Fail
 
 from __future__ import annotations
 
+import logging
 import re
 import time
 from typing import Callable, Optional, Protocol, TypeVar
 
 from .devices import FilterWheel, WheelError
 from .rig import WheelConfig
+
+log = logging.getLogger(__name__)
 
 __all__ = ["FW102C", "SerialLike"]
 
@@ -262,9 +265,12 @@ class FW102C(FilterWheel):
         problem = ""
         for _ in range(self.retries + 1):
             try:
-                return parse(self._exchange(command, prompt_timeout_s or self.timeout_s))
+                lines = self._exchange(command, prompt_timeout_s or self.timeout_s)
+                log.debug("%s: %r answered %r", self.name, command, lines)
+                return parse(lines)
             except _ExchangeFailed as exc:
                 problem = str(exc)
+                log.info("%s: %r: %s", self.name, command, problem)
             except _PORT_ERRORS as exc:
                 raise self._error(f"the serial port failed during {command!r}: {exc}") from None
         raise self._error(f"{problem} (after {self.retries + 1} attempt(s), timeout {self.timeout_s:g} s)")

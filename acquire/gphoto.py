@@ -30,6 +30,7 @@ A menu entry counts as the value asked for, and so does the value read back, by 
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import shlex
@@ -42,6 +43,8 @@ from typing import Optional
 
 from .devices import Camera, CameraError, format_shutter_s, show_setting
 from .rig import CameraConfig
+
+log = logging.getLogger(__name__)
 
 __all__ = ["GPhotoCamera", "RAW_SUFFIXES", "detect_cameras", "format_shutter_s", "parse_aperture_f", "parse_shutter_s"]
 
@@ -96,6 +99,7 @@ def _run_gphoto2(executable: str, args: list[str], timeout_s: float, cwd: Option
     """Run gphoto2 under the C locale; its stdout, or ``CameraError`` naming the command."""
     cmd = [executable, *args]
     shown = shlex.join(cmd)
+    log.debug("camera: %s", shown)
     try:
         proc = subprocess.run(
             cmd, capture_output=True, text=True, timeout=timeout_s, cwd=cwd, stdin=subprocess.DEVNULL,

@@ -16,6 +16,7 @@ Nothing is lost on a fault and nothing is overwritten:
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from dataclasses import dataclass, field
@@ -28,6 +29,8 @@ from ..formats.files import file_sha256, now_iso
 from ..formats.outputs import inside_session
 from ..formats.manifest import FrameRecord, Manifest, ManifestError, read_manifest, write_manifest
 from .rig import RigConfig
+
+log = logging.getLogger(__name__)
 
 __all__ = ["AutoOperator", "Operator", "PlannedFrame", "SessionError", "SessionSummary", "plan_session", "run_session"]
 
@@ -162,6 +165,8 @@ def _capture_frame(folder: Path, wheel: FilterWheel, camera: Camera, p: PlannedF
     finally:
         if written is not None and written.exists():
             written.unlink()
+    log.info("%s frame%s: filter %d, %s → %s", p.role, f" {p.band_nm:g} nm" if p.band_nm is not None else "",
+             p.filter_position, got.as_dict(), name)
     return FrameRecord(
         role=p.role, band_nm=p.band_nm, filter_position=p.filter_position, exposure=got.as_dict(),
         file=name, sha256=file_sha256(folder / name), time=now_iso(),

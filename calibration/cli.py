@@ -11,6 +11,7 @@ import typer
 
 from .pipeline import calibrate_session, default_out_dir
 from .settings import SettingsFileError, load_calibration_settings
+from ..formats.threads import THREADS_HELP, command_threads
 
 __all__ = ["calibration_progress", "print_summary", "register"]
 
@@ -38,6 +39,7 @@ def calibrate(
     gray_card_roi: Optional[str] = typer.Option(None, "--gray-card-roi", help="x0,y0,x1,y1: the gray card in raw pixels."),
     force: bool = typer.Option(False, "--force", help="Replace an earlier calibration in the output folder."),
     as_json: bool = typer.Option(False, "--json", help="Print calibration.json (without the settings) instead of a table."),
+    threads: Optional[str] = typer.Option(None, "--threads", help=THREADS_HELP),
 ) -> None:
     """Calibrate a session into a reflectance cube: cube.exr, calibration.json, contact_sheet.png.
 
@@ -52,6 +54,7 @@ def calibrate(
         overrides["gray_card_roi_px"] = _parse_roi(gray_card_roi)
     settings = load_calibration_settings(config, **overrides)
 
+    command_threads(threads)
     with calibration_progress() as progress:
         result = calibrate_session(session, out if out is not None else default_out_dir(session), settings, progress, overwrite=force)
     report = result.report

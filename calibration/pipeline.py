@@ -25,6 +25,7 @@ captured — checksums, resumable capture, read-only archives):
 
 from __future__ import annotations
 
+import logging
 import json
 import math
 import time
@@ -53,6 +54,9 @@ from .raw import RawImage, cell_centroid, cell_weights, read_raw
 from .report import Thumbnail, thumbnail, write_contact_sheet
 from .settings import CalibrationSettings
 from .window import box_filter, find_window, rectify, superpixel_to_raw_xy
+from ..formats.threads import library_threads
+
+log = logging.getLogger(__name__)
 
 __all__ = ["CalibrationResult", "ProgressFn", "calibrate_session", "default_out_dir"]
 
@@ -137,6 +141,7 @@ def calibrate_session(
     or OSError subclasses, one line each); problems that leave the cube usable become flags.
     """
     settings = settings or CalibrationSettings()
+    library_threads()  # SKINLAYERS_THREADS, where set (formats/threads.py)
     timings: dict[str, float] = {}
     clock = _stage_clock(timings)
     with clock("verify"):
@@ -157,6 +162,10 @@ def _calibrate(inputs: _Inputs, settings: CalibrationSettings, staging: Staging,
     bands = []
     for k, frames in enumerate(inputs.bands):
         bands.append(_calibrate_band(frames, dark, dark_sp, inputs, settings, clock))
+        entry = bands[-1].entry
+        log.info("%g nm: window corners %s px, edge rms %.2f px, saturated %.1f%%, flags %s", frames.wavelength_nm,
+                 [[round(v) for v in c] for c in entry["window_corners_px"]], entry["window_edge_rms_px"],
+                 100 * entry["saturated_fraction"], [f.code for f in bands[-1].flags] or "none")
         _report(progress, 2 + k, total, f"{frames.wavelength_nm:g} nm calibrated")
     stack, valid = np.stack([b.rectified for b in bands]), np.stack([b.valid for b in bands])
     with clock("align"):

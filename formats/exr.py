@@ -19,7 +19,7 @@ import torch
 
 from .errors import InputError
 
-__all__ = ["ExrError", "band_channels", "float_attribute", "read_exr", "read_spectral", "write_exr", "write_spectral"]
+__all__ = ["ExrError", "band_channels", "float_attribute", "read_exr", "read_exr_header", "read_spectral", "write_exr", "write_spectral"]
 
 _BAND = re.compile(r"^([A-Za-z]+)_(\d+(?:\.\d+)?)$")
 
@@ -81,6 +81,22 @@ def read_exr(path: str | Path, error: type[Exception] = ExrError) -> tuple[dict[
     except (RuntimeError, OSError, ValueError) as exc:
         raise error(f"{path}: not a readable OpenEXR file ({exc})") from None
     return channels, header
+
+
+def read_exr_header(path: str | Path, error: type[Exception] = ExrError) -> tuple[int, int, dict]:
+    """(height, width, header) of an OpenEXR file, read without its pixels: work can be sized, and
+    refused, before the image is loaded."""
+    OpenEXR = _openexr()
+    path = Path(path)
+    if not path.exists():
+        raise error(f"{path}: no such file")
+    try:
+        with OpenEXR.File(str(path), header_only=True) as f:
+            header = dict(f.header())
+        (x0, y0), (x1, y1) = (tuple(int(v) for v in corner) for corner in header["dataWindow"])
+    except (RuntimeError, OSError, ValueError, KeyError, TypeError) as exc:
+        raise error(f"{path}: not a readable OpenEXR file ({exc})") from None
+    return y1 - y0 + 1, x1 - x0 + 1, header
 
 
 def float_attribute(header: dict, key: str, path: Path, error: type[Exception] = ExrError) -> float:

@@ -19,6 +19,7 @@ from .layered import SkinModel
 from .params import PARAMETER_NAMES, TABLE2, SkinParams
 from .settings import ModelSettings, load_model_settings
 from .transport import check_physics_options
+from ..formats.threads import THREADS_HELP, command_threads
 
 __all__ = ["COLOUR_WAVELENGTHS_NM", "parse_wavelengths", "register"]
 
@@ -321,6 +322,8 @@ def render(
     physics: str = typer.Option("diffusion", "--physics", help="diffusion (the model's renderer) or transport (the Monte Carlo reference)."),
     photons: Optional[int] = typer.Option(None, "--photons", help="--physics transport: photons per band (default: the settings')."),
     seed: int = typer.Option(0, "--seed", help="--physics transport: seed of the photons."),
+    tile: int = typer.Option(0, "--tile", help="Render in square tiles of this many pixels (uniform light; 0: only when the maps do not fit in memory whole)."),
+    threads: Optional[str] = typer.Option(None, "--threads", help=THREADS_HELP),
 ) -> None:
     """Render parameter maps with the heterogeneous layered model: a spectral EXR and an sRGB PNG.
 
@@ -334,15 +337,19 @@ def render(
     dev = _device(device)
     lit = parse_light(light)
     wl = parse_wavelengths(bands) if bands else torch.tensor(settings.render_wavelengths_nm, dtype=torch.float64)
-    maps = _edited_maps(maps_file, swap, edit, tattoo)
     check_physics_options(physics, photons)
+    plan = _memory_plan(maps_file, lit, wl, settings, dev, tile, physics)  # from the header, before any pixel is read
+    maps = _edited_maps(maps_file, swap, edit, tattoo)
     base = out.with_suffix("") if out.suffix.lower() in (".exr", ".png") else out
     names = [base.with_suffix(".exr").name] + ([base.with_suffix(".png").name] if wl.numel() >= 2 else [])
+    command_threads(threads)
     with claim_outputs(base.parent, names, force=force, lock_name=f".{base.name}.lock", what="rendering") as staging:
         start = time.perf_counter()
         angles = dict(under_gel=gel, light_angle_deg=light_angle, view_angle_deg=view_angle)
         if physics == "transport":
             image, se, extra, how = _render_transport(maps.to(dev), lit, wl, settings, photons, seed, angles)
+        elif plan is not None and plan.tile_px is not None:
+            (image, extra, how), se = _render_tiles(maps.to(dev), lit, wl, settings, blur, angles, plan), None
         else:
             (image, extra, how), se = _render_diffusion(maps.to(dev), lit, wl, settings, dev, blur, angles), None
         seconds = time.perf_counter() - start
@@ -350,7 +357,7 @@ def render(
                        attributes={"light": light, "software": "skinlayers", "physics": physics, **extra},
                        extra=None if se is None else {"SE": se})
         if wl.numel() >= 2:
-            _write_png(staging.path(names[1]), ColourConverter(wl, settings.illuminant).srgb(image.permute(1, 2, 0)))
+            _write_png(staging.path(names[1]), _srgb_rows(ColourConverter(wl, settings.illuminant), image))
     typer.echo(
         f"rendered {image.shape[1]}×{image.shape[2]} px at {wl.numel()} bands on {dev.type} in {seconds:.1f} s "
         f"({how}): " + ", ".join(str(base.parent / n) for n in names)
@@ -409,6 +416,51 @@ def _render_transport(maps, light, wl: torch.Tensor, settings: ModelSettings, ph
     extra = {"photons_per_band": str(result.photons), "seed": str(seed), "anisotropy": str(settings.transport.anisotropy),
              "std_error_median": [float(v) for v in se.reshape(se.shape[0], -1).median(1).values]}
     return result.image[0].cpu(), se, extra, f"Monte Carlo, {result.photons:,} photons a band, median standard error {float(se.median()):.2g}"
+
+
+def _memory_plan(maps_file: Path, light, wl: torch.Tensor, settings: ModelSettings, device, tile: int, physics: str):
+    """Whole or in tiles, from the maps' header alone (``model/tiles.py``); refused here, before any large
+    allocation, when not even tiles fit the memory budget. None for the Monte Carlo (it renders pixels
+    in batches of its own)."""
+    from ..formats.exr import read_exr_header  # noqa: PLC0415
+    from ..formats.maps import MapsError  # noqa: PLC0415
+    from .renderer import SkinRenderer  # noqa: PLC0415
+    from .tiles import memory_budget_bytes, plan_render  # noqa: PLC0415
+
+    if tile < 0 or 0 < tile < 16:
+        raise InputError(f"--tile {tile}: 0 (automatic) or a tile side of at least 16 px")
+    if physics == "transport":
+        return None
+    height, width, header = read_exr_header(maps_file, MapsError)
+    mm = float(header.get("mm_per_pixel", 0.0) or 0.0)
+    if not mm > 0:
+        return None  # the maps' reader refuses it, naming the attribute
+    renderer = SkinRenderer(settings)
+    return plan_render((1, height, width), mm, wl.numel(), light, renderer, memory_budget_bytes(device), tile or None)
+
+
+def _render_tiles(maps, light, wl: torch.Tensor, settings: ModelSettings, blur, angles: dict, plan):
+    """The diffusion renderer tile by tile, with a progress bar: the image ``(L, H, W)``, header extras, a note."""
+    from rich.progress import Progress  # noqa: PLC0415
+
+    from .renderer import SkinRenderer  # noqa: PLC0415
+    from .tiles import render_tiled  # noqa: PLC0415
+
+    with Progress(transient=True) as bar:
+        task = bar.add_task(f"tiles of {plan.tile_px} px", total=None)
+        image = render_tiled(SkinRenderer(settings), maps, light, wl, plan.tile_px, plan.halo_px,
+                             lambda done, total: bar.update(task, completed=done, total=total), blur=blur, **angles)
+    extra = {"tile_px": str(plan.tile_px), "tile_halo_px": str(plan.halo_px)}
+    return image[0], extra, plan.describe()
+
+
+def _srgb_rows(converter: ColourConverter, image: torch.Tensor, rows: int = 256) -> torch.Tensor:
+    """sRGB ``(H, W, 3)`` (float32) of ``(L, H, W)``, ``rows`` rows at a time (a camera's frame whole
+    would take its size many times over in the colour conversion's intermediates)."""
+    out = torch.empty(image.shape[1], image.shape[2], 3, dtype=torch.float32)
+    for y in range(0, image.shape[1], rows):
+        out[y:y + rows] = converter.srgb(image[:, y:y + rows].permute(1, 2, 0)).float()
+    return out
 
 
 def _band_groups(maps, light, wl: torch.Tensor, settings: ModelSettings, device) -> list[slice]:

@@ -18,6 +18,7 @@ from ..model import PARAMETER_NAMES, SkinModel, load_model_settings
 from .spectra_io import read_spectra_csv
 from .spectrum_fit import METHODS
 from .spectrum_models import MODEL_CHOICES, candidate_label, select_spectrum_models, spectrum_candidates
+from ..formats.threads import THREADS_HELP, command_threads
 
 __all__ = ["fit_progress", "print_fit_summary", "register", "resolve_cube_path"]
 
@@ -280,6 +281,7 @@ def reconstruct(
              "fit (the renderer, every map per pixel, a free scale).",
     ),
     force: bool = typer.Option(False, "--force", help="Overwrite the outputs of an earlier fit in the output folder."),
+    threads: Optional[str] = typer.Option(None, "--threads", help=THREADS_HELP),
 ) -> None:
     """Fit chromophore maps to a reflectance cube by inverse rendering (DWRR08 §6.3).
 
@@ -298,6 +300,7 @@ def reconstruct(
     cube_path = resolve_cube_path(source)
     out_dir = out or default_reconstruction_dir(source, cube_path)
     check_outputs(out_dir, OUTPUT_NAMES, force=force, what="reconstruction")  # refused before any bar or work
+    typer.echo(f"threads: {command_threads(threads).describe()}")
     bands = len(read_cube(cube_path).header.wavelengths_nm)
     with fit_progress(settings, bands) as on_event:
         fit, paths = reconstruct_cube(cube_path, out_dir, settings, device=device, force=force, progress=on_event)

@@ -81,28 +81,30 @@ def paper_forward_differences(problem: LevelProblem, x0, log_scale0, settings, p
 
 
 def adam(problem: LevelProblem, x0, log_scale0, settings, progress=None) -> OptimResult:
-    """Adam on the exact gradient; the iterate with the lowest loss is returned."""
+    """Adam (``torch.optim.Adam``) on the exact gradient; the iterate with the lowest loss is returned.
+    The unknowns are one row per pixel ``(N, N_PARAMS + 1)``: its maps, then its share of the scale, whose
+    gradient is spread over the pixels so its moments stay comparable with the maps' (the scale moves by
+    the mean of the shares' steps)."""
     x = x0.detach().clone()
     log_scale = log_scale0.detach().clone()
     ev = problem.evaluate(x, log_scale, grad=True)
     best = ev
     history = [(time.process_time(), ev.loss)]
-    beta1, beta2, eps = 0.9, 0.999, 1e-8
-    m = torch.zeros(problem.n_pixels, N_PARAMS + 1, dtype=x.dtype, device=x.device)  # the maps, then the scale
-    v = torch.zeros_like(m)
+    unknowns = torch.zeros(problem.n_pixels, N_PARAMS + 1, dtype=x.dtype, device=x.device)
+    optimizer = torch.optim.Adam([unknowns], lr=settings.learning_rate, betas=(0.9, 0.999), eps=1e-8)
     converged = False
     it = 0
     for it in range(1, FIRST_ORDER_CAP * settings.max_iterations + 1):
         col = problem.at_pixels(ev.image) * torch.exp(ev.log_scale) * problem.row_weight
         g_scale = (col * ev.residual).sum() if settings.free_scale else torch.zeros((), dtype=x.dtype)
-        # per-pixel gradient; the scale's share is spread over the pixels so its moments stay comparable
-        g = torch.cat([ev.grad, (g_scale / problem.n_pixels).expand(problem.n_pixels, 1)], dim=1)
-        m = beta1 * m + (1 - beta1) * g
-        v = beta2 * v + (1 - beta2) * g * g
-        step = settings.learning_rate * (m / (1 - beta1**it)) / (torch.sqrt(v / (1 - beta2**it)) + eps)
+        with torch.no_grad():  # from the point evaluated (a map on coarse nodes moves all its pixels)
+            unknowns[:, :N_PARAMS] = problem.at_pixels(ev.x)
+            unknowns[:, N_PARAMS] = 0.0
+        unknowns.grad = torch.cat([ev.grad, (g_scale / problem.n_pixels).expand(problem.n_pixels, 1)], dim=1)
+        optimizer.step()
         flat = ev.x.clone().reshape(N_PARAMS, -1)
-        flat[:, problem.pixels] = (flat[:, problem.pixels] - step[:, :N_PARAMS].T).clamp(-X_LIMIT, X_LIMIT)
-        new_scale = ev.log_scale - (step[:, N_PARAMS].mean() if settings.free_scale else 0.0)
+        flat[:, problem.pixels] = unknowns.detach()[:, :N_PARAMS].T.clamp(-X_LIMIT, X_LIMIT)
+        new_scale = ev.log_scale + (unknowns.detach()[:, N_PARAMS].mean() if settings.free_scale else 0.0)
         ev = problem.evaluate(flat.reshape(x.shape), new_scale, grad=True)
         if ev.loss < best.loss:
             best = ev

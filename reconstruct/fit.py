@@ -16,6 +16,7 @@ model's own error): ``uncertainty.py``.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -29,6 +30,7 @@ from ..formats.errors import InputError
 from ..model import N_PARAMS, PARAMETER_NAMES
 from ..model.maps import SkinMaps
 from ..formats.resources import require_memory
+from ..formats.threads import library_threads
 from ..model.renderer import SkinRenderer, render_bytes
 from .absorbers import AbsorberFit, candidate_rows, fit_grey_absorbance
 from .checks import (DataChecks, band_bias, band_bias_notes, check_cube, flag_value, precision_notes, residual_notes,
@@ -45,6 +47,8 @@ from .start import STARTS, mean_spectrum_start
 from .uniform import fit_uniform
 from .uncertainty import MODEL_FLOOR, MODEL_FLOOR_ABSOLUTE, crosstalk_ratio, model_floor, subnode_sd
 from .unknowns import dparams_dx, extend, near_bound, pyramid, to_params, upsample
+
+log = logging.getLogger(__name__)
 
 __all__ = ["DEFAULT_BAND_FWHM_NM", "DEFAULT_VIEW_ANGLE_DEG", "FitEvent", "MapFit", "band_fwhm_of", "fit_cube", "view_angle_of"]
 
@@ -175,6 +179,7 @@ def fit_cube(
     cache_dir: str | None = None,
 ) -> MapFit:
     """Fit the five maps and the scale to ``cube``; see the module docstring."""
+    library_threads()  # SKINLAYERS_THREADS, where set (formats/threads.py)
     run = CubeFit(cube, settings or FitSettings(), device=device, renderer=renderer, progress=progress, cache_dir=cache_dir)
     problem, x, choice = run.start()
     result, forward, problem, x = run.fit_levels(problem, x)
@@ -317,6 +322,9 @@ class CubeFit:
         self.records.append({"forward": forward, **_level_record(problem, result, passes, time.process_time() - c0,
                                                                  self.counter.forward - f0, self.counter.backward - b0)})
         self.say(FitEvent("level", i, len(self.levels), sum(passes), result.evaluation.loss, self.pixels))
+        log.info("level %d of %d (%d×%d px, %s): %d iteration(s) in %d pass(es), loss %.4g, %.1f s of CPU", i + 1,
+                 len(self.levels), *problem.level.shape, forward, sum(passes), len(passes), result.evaluation.loss,
+                 time.process_time() - c0)
         return result
 
 

@@ -5,7 +5,7 @@ Why. The right node spacing of a map moves with the cube: its pixel size, its no
 (under transport profiles a dermal-blood change spreads its light over the neighbours, so neighbouring
 pixels' C_hd cannot be told apart at the spacing diffusion holds: docs/transport.md) and the scene's
 own detail. One fixed ``map_cell_mm`` cannot be right for all of them (0.75-mm C_hd nodes help 32²
-transport sessions and cost 64² ones: docs/transport_session_grid.csv).
+transport sessions and cost 64² ones: docs/data/transport_session_grid.csv).
 
 How, at the fit's coarsest level (``fit.fit_cube`` with ``map_grids: auto``), for map k at spacing s:
 

@@ -4,10 +4,14 @@ spectral skin model (Donner, Weyrich, d'Eon, Ramamoorthi, Rusinkiewicz 2008).
 The public API re-exports what each part offers; the command line is ``skinlayers`` (``cli.py``).
 """
 
+import logging
 from importlib.metadata import PackageNotFoundError, version
 
 from .model import TABLE2, ColourConverter, ModelSettings, SkinModel, SkinParams, load_model_settings
 from .reconstruct import fit_spectra
+
+# a library logs and leaves the showing to its user (the command line: ``skinlayers -v``)
+logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 try:
     __version__ = version("skinlayers")

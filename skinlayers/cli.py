@@ -8,6 +8,7 @@ status 1; usage errors (unknown options) exit 2 as usual. Anything else is a bug
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 
@@ -32,6 +33,33 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+#: ``-v``: what the acquisition, calibration and fit do, step by step; ``-vv``: also every command sent
+#: to the filter wheel and the camera, with their answers.
+_LOG_LEVELS = {0: logging.WARNING, 1: logging.INFO, 2: logging.DEBUG}
+
+
+@app.callback()
+def _options(
+    verbose: int = typer.Option(
+        0, "--verbose", "-v", count=True,
+        help="Log on stderr what the instruments and the pipeline do: -v each step, -vv also every device command.",
+    ),
+) -> None:
+    """Multi-spectral skin acquisition and inverse rendering (Donner et al. 2008)."""
+    show_logs(verbose)
+
+
+def show_logs(verbosity: int) -> None:
+    """Send the toolkit's log records of the verbosity's level to stderr (rich's handler, times shown)."""
+    from rich.console import Console  # noqa: PLC0415 (only when asked for)
+    from rich.logging import RichHandler  # noqa: PLC0415
+
+    root = logging.getLogger("skinlayers")
+    root.setLevel(_LOG_LEVELS[min(verbosity, 2)])
+    if verbosity and not any(isinstance(h, RichHandler) for h in root.handlers):
+        root.addHandler(RichHandler(console=Console(stderr=True), show_path=False, markup=False))
+
+
 model_cli.register(app)
 acquire_cli.register(app)
 calibration_cli.register(app)

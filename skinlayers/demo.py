@@ -19,6 +19,7 @@ from .formats.cube import CUBE_NAME
 from .formats.errors import InputError
 from .formats.outputs import refuse_inside_session
 from .formats.version import software_version
+from .formats.threads import THREADS_HELP, command_threads
 
 __all__ = ["accuracy_against_truth", "demo", "map_errors", "register", "scored_pixels", "session_rig", "sigma_coverage",
            "simulate_session"]
@@ -198,6 +199,7 @@ def demo(
              "the fit measured on physics it did not make; slow, use --size 32).",
     ),
     photons: Optional[int] = typer.Option(None, "--photons", help="--physics transport: photons per wavelength node of each band."),
+    threads: Optional[str] = typer.Option(None, "--threads", help=THREADS_HELP),
 ) -> None:
     """Simulated capture → calibration → reconstruction → report, on embedded defaults.
 
@@ -208,6 +210,7 @@ def demo(
     import yaml  # noqa: PLC0415
 
     truth = _checked_options(out, size, device, scene, physics, photons)
+    typer.echo(f"threads: {command_threads(threads).describe()}")
     folder = out if out is not None else fresh_folder(Path(DEFAULT_FOLDER))
     folder.mkdir(parents=True, exist_ok=True)
     session, calibrated, reconstruction = folder / "session", folder / "calibrated", folder / "reconstruction"

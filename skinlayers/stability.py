@@ -39,6 +39,7 @@ import typer
 
 from .sweep import AnalysisResult, SweepTable, analysis_device, cell_text, echo_outputs
 from .tradeoff import TARGETS, SessionSpec, make_session
+from .formats.threads import THREADS_HELP, command_threads
 
 __all__ = ["COLUMNS", "CONDITIONS", "METHODS", "StabilityPlan", "StabilityResult", "cell_verdict", "make_plan", "run_stability"]
 
@@ -437,6 +438,7 @@ def stability(
     out: Path = typer.Option(Path("stability"), "-o", "--out", help="Folder for stability.csv, stability.json and the heat maps; a rerun continues in it."),
     device: str = typer.Option("cpu", "--device", help="cpu, cuda or auto (CUDA when available)."),
     seed: int = typer.Option(0, "--seed", help="Shifts the base session's seed."),
+    threads: "str | None" = typer.Option(None, "--threads", help=THREADS_HELP),
 ) -> None:
     """Map where each method fails: conditions × methods on simulated sessions with known truth; per cell
     whether the maps meet the targets and whether the calibration or the fit said so.
@@ -444,6 +446,7 @@ def stability(
     Example: skinlayers stability --quick -o stability   (then open stability/stability_auto.png)
     """
     device = analysis_device(device)
+    command_threads(threads)
     result = run_stability(out, quick=quick, seed=seed, device=device)
     for method, entry in result.summary["methods"].items():
         points = ", ".join(f"{c} {b['first_miss']}" for c, b in entry["breaking_points"].items() if b["first_miss"] is not None)

@@ -34,6 +34,7 @@ import typer
 from .reconstruct.checks import MAP_TARGETS
 from .reconstruct.first_order import FIRST_ORDER_CAP
 from .sweep import AnalysisResult, PeakMemory, SweepTable, analysis_device, echo_outputs, pareto_front, time_to_front
+from .formats.threads import THREADS_HELP, command_threads
 
 __all__ = ["COLUMNS", "FORWARD_CONFIGS", "INVERSE_CONFIGS", "TARGETS", "SessionSpec", "TradeoffPlan", "TradeoffResult",
            "make_plan", "run_tradeoff"]
@@ -583,6 +584,7 @@ def tradeoff(
     cube: Optional[Path] = typer.Option(None, "--cube", help="Your own cube.exr (no truth): each configuration against the most faithful one's maps."),
     device: str = typer.Option("cpu", "--device", help="cpu, cuda or auto (CUDA when available)."),
     seed: int = typer.Option(0, "--seed", help="Shifts the simulated (diffusion) sessions' seeds; the transport sessions are the shipped ones."),
+    threads: Optional[str] = typer.Option(None, "--threads", help=THREADS_HELP),
 ) -> None:
     """Chart speed against accuracy: the renderer's and the fit's choices, each timed and measured against
     a truth (Monte Carlo, simulated sessions), with the Pareto front.
@@ -592,6 +594,7 @@ def tradeoff(
     from .formats.errors import InputError  # noqa: PLC0415
 
     device = analysis_device(device)
+    command_threads(threads)
     if cube is not None and not cube.is_file():
         raise InputError(f"--cube {cube}: no such file")
     result = run_tradeoff(out, quick=quick, cube=cube, device=device, seed=seed)

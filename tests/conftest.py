@@ -15,6 +15,8 @@ import pytest
 #: pool, and inherited by the commands the tests run), else the workers' threads oversubscribe the cores.
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    # the thread policy (formats/threads.py) of the commands and library calls the tests make: one
+    os.environ.setdefault("SKINLAYERS_THREADS", "1")
 
 #: The default selection (pyproject's addopts); any other ``-m`` (benchmarks, slow checks) runs in one
 #: process: benchmarks time themselves with two threads and print their tables.

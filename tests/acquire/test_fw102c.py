@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from typing import Optional
@@ -296,3 +297,14 @@ def test_close_is_idempotent_and_blocks_further_use():
 def test_bad_settings_refused(kw):
     with pytest.raises(ValueError):
         FW102C(ScriptedTransport([]), **kw)
+
+
+def test_every_exchange_is_logged_for_skinlayers_vv(caplog):
+    """``skinlayers -vv``: each command sent and its answer, at DEBUG, naming the port."""
+    w, _ = wheel([(b"*idn?\r", reply(b"*idn?", IDN)), PCOUNT6])
+    with caplog.at_level(logging.DEBUG, logger="skinlayers.acquire.fw102c"):
+        w.identify()
+        assert w.position_count == 6
+    said = [r.getMessage() for r in caplog.records if r.name == "skinlayers.acquire.fw102c"]
+    assert len(said) == 2 and PORT in said[0] and "'*idn?'" in said[0] and IDN.decode() in said[0], said
+    assert "'pcount?'" in said[1] and "'6'" in said[1], said

@@ -4,6 +4,7 @@ never overwriting, and the `capture` command (simulated, and a virtual wheel on 
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import pytest
@@ -183,3 +184,13 @@ def test_capture_command_refuses_what_it_cannot_do(tmp_path, run_cli):
                            "--out", str(tmp_path / "y"), "--yes")
     assert code == 1 and "/dev/nonexistent-port" in err and "Traceback" not in err
     assert not (tmp_path / "y").exists()
+
+
+def test_each_frame_is_logged_for_skinlayers_v(tmp_path, caplog):
+    """``skinlayers -v``: one line per frame taken, its role, band, filter and file."""
+    with caplog.at_level(logging.INFO, logger="skinlayers.acquire.session"):
+        capture(tmp_path / "s")
+    said = [r.getMessage() for r in caplog.records if r.name == "skinlayers.acquire.session"]
+    assert len(said) == 5, said
+    assert said[0].startswith("dark frame: filter 1") and said[0].endswith("dark.dng")
+    assert said[-1].startswith("skin frame 580 nm: filter 7") and said[-1].endswith("skin_580nm.dng")

@@ -3,7 +3,7 @@
 Compares the model's diffuse reflectance (and, for one slab, transmittance) with adding-doubling
 (iadpython, 16 quadrature points, g = 0 with σs = σs′) and writes, relative to the repository root:
 
-- ``docs/transport_error.csv``: every number (comparisons and the reference's own checks);
+- ``docs/data/transport_error.csv``: every number (comparisons and the reference's own checks);
 - ``docs/figures/transport_single_slab.png``: one 0.25 mm slab in air (R and T, both source depths)
   and a half-space (dipole), error versus σa at the scattering of 400, 550 and 700 nm;
 - ``docs/figures/transport_two_layer.png``: two-layer skin (indices matched), error versus wavelength
@@ -211,7 +211,7 @@ def test_reference_is_consistent(results):
 
 
 def test_write_error_table(results):
-    """All rows to docs/transport_error.csv; with -s, the markdown tables of docs/transport.md."""
+    """All rows to docs/data/transport_error.csv; with -s, the markdown tables of docs/transport.md."""
     _write_csv(ROOT / "docs" / "transport_error.csv", results["checks"] + results["single"] + results["skin"])
     single = [r for r in results["single"] if r["case"] == "single_slab"]
     for q in ("R", "T"):

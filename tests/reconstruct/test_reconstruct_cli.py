@@ -57,6 +57,7 @@ def test_second_run_from_the_cli_is_identical(run, session, small_fit):
 def test_reconstruct_a_session_writes_every_output(run, session):
     result, config = run
     assert result.exit_code == 0, result.output
+    assert "threads: 1 thread(s): as asked (SKINLAYERS_THREADS=1)" in result.output  # the suite's policy
     out = session.parent / "arm_reconstruction"
     for name in ("maps.exr", "fit.json", "report.png", "fit_settings.yaml"):
         assert (out / name).exists(), name

@@ -126,7 +126,7 @@ def test_tabulated_fit_matches_the_exact_fit(free_scale):
     """``method="tables"`` (tabulated totals, library start) on NIST forearms: no spectrum's residual
     worse than the exact fit's by more than 1%, and the residual it reports is the exact model's at its
     parameters. Measured on all 100 (101 bands): identical residuals (median 0.0227; free scale
-    0.0067) at 18.8 against 26.8 ms per spectrum (free scale 17.4 against 64.4; docs/point_fit.csv)."""
+    0.0067) at 18.8 against 26.8 ms per spectrum (free scale 17.4 against 64.4; docs/data/point_fit.csv)."""
     data = read_spectra_csv(NIST).select(400, 700)
     y, wl = data.reflectance[::4], data.wavelength_nm
     model = SkinModel()
