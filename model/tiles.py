@@ -1,0 +1,170 @@
+"""Rendering maps larger than memory: in tiles, each with a halo of its neighbours as wide as the light's reach.
+
+A camera's full frame needs many times the memory of a workstation rendered at once (``render_bytes``). Under
+uniform light each pixel's answer depends only on the skin within the light's reach around it, so the
+maps are cut into square tiles, each rendered with ``halo_px`` of the real neighbouring skin on every side
+(beyond that, as at the maps' own edges, the skin is taken as its edge), and only its core is kept.
+Every tile takes the inter-scattering terms of the whole maps (the worst pixel of all), so the tiles
+differ from one render of the whole only by the light that travels farther than the halo. How far
+that is, measured: docs/renderer.md, "Tiles".
+
+Tiles need uniform light (a window, stripes or a point are placed on the whole grid); the other lights
+render whole, and maps too large for that are refused before any large allocation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+import torch
+
+from ..formats.resources import USABLE_SHARE, available_memory_bytes, format_bytes
+from ..formats.errors import InputError
+from .illumination import Light
+from .maps import SkinMaps
+from .renderer import SkinRenderer, render_bytes
+
+__all__ = ["MemoryPlan", "Tile", "TooLargeError", "memory_budget_bytes", "plan_render", "render_tiled", "tiles"]
+
+#: Smallest tile core (px): below this a tile's halo costs more than its core.
+MIN_TILE_PX = 64
+#: Tile cores are multiples of this (px).
+TILE_STEP_PX = 32
+#: The halo as a multiple of the renderer's border (render.border_mm): the light's reach.
+HALO_BORDERS = 1.0
+#: Bytes per pixel and band of what stays whole: the output image (float32) and its copy on writing.
+_OUTPUT_BYTES_PER_CELL = 8
+#: Bytes per pixel of the maps held whole (five parameters and the surface term, float32, and one copy).
+_MAPS_BYTES_PER_PX = 48
+
+
+class TooLargeError(InputError):
+    """Work that cannot fit in the memory budget even in tiles; the message says what it needs."""
+
+
+@dataclass(frozen=True)
+class Tile:
+    """A tile's core ``[y0, y1) × [x0, x1)`` and the region rendered for it (core plus halo, clipped to the maps)."""
+
+    y0: int
+    y1: int
+    x0: int
+    x1: int
+    ya: int
+    yb: int
+    xa: int
+    xb: int
+
+
+@dataclass(frozen=True)
+class MemoryPlan:
+    """How a render fits the budget: whole (``tile_px`` None) or in tiles of ``tile_px``, the estimates."""
+
+    tile_px: int | None
+    halo_px: int
+    whole_bytes: float
+    peak_bytes: float
+    budget_bytes: float
+
+    def describe(self) -> str:
+        how = "whole" if self.tile_px is None else f"in tiles of {self.tile_px} px with a {self.halo_px}-px halo"
+        return (f"{how}: about {format_bytes(self.peak_bytes)} of a {format_bytes(self.budget_bytes)} budget "
+                f"(whole: {format_bytes(self.whole_bytes)})")
+
+
+def tiles(height: int, width: int, tile_px: int, halo_px: int) -> Iterator[Tile]:
+    """The tiles covering ``height`` × ``width``, row by row."""
+    for y0 in range(0, height, tile_px):
+        for x0 in range(0, width, tile_px):
+            y1, x1 = min(y0 + tile_px, height), min(x0 + tile_px, width)
+            yield Tile(y0, y1, x0, x1, max(0, y0 - halo_px), min(height, y1 + halo_px),
+                       max(0, x0 - halo_px), min(width, x1 + halo_px))
+
+
+def memory_budget_bytes(device=None) -> float:
+    """The budget a render may use: ``SKINLAYERS_MEMORY_BUDGET_MB`` if set, else the usable share of the
+    memory available now (``formats.resources``); infinite where neither is known."""
+    import os  # noqa: PLC0415
+
+    text = os.environ.get("SKINLAYERS_MEMORY_BUDGET_MB")
+    if text:
+        try:
+            value = float(text)
+        except ValueError:
+            value = -1.0
+        if not value > 0:
+            raise InputError(f"SKINLAYERS_MEMORY_BUDGET_MB: a size in MB greater than 0, got {text!r}")
+        return value * 2**20
+    available = available_memory_bytes(device)
+    return math.inf if available is None else USABLE_SHARE * available
+
+
+def plan_render(maps_shape: tuple[int, int, int], mm_per_pixel: float, bands: int, light: Light, renderer: SkinRenderer,
+                budget_bytes: float, tile_px: int | None = None, itemsize: int = 4) -> MemoryPlan:
+    """Whole if it fits ``budget_bytes`` (and no ``tile_px`` is asked for), else the largest tile that
+    fits; ``TooLargeError`` with the estimate, the budget and the way out where nothing fits."""
+    b, h, w = maps_shape
+    rs = renderer.settings.render
+    border = light.border_px(mm_per_pixel, rs.border_mm)
+    halo = int(math.ceil(HALO_BORDERS * rs.border_mm / mm_per_pixel))
+    fixed = b * h * w * (_MAPS_BYTES_PER_PX + _OUTPUT_BYTES_PER_CELL * bands)
+    whole = fixed + render_bytes(b, bands, h, w, border, itemsize=itemsize, weight_cache_mb=rs.weight_cache_mb)
+    if tile_px is None and whole <= budget_bytes:
+        return MemoryPlan(None, halo, whole, whole, budget_bytes)
+    if not light.extends:
+        raise TooLargeError(
+            f"rendering {h}×{w} px at {bands} band(s) needs about {format_bytes(whole)}; the budget is "
+            f"{format_bytes(budget_bytes)}, and only uniform light renders in tiles. Render a smaller grid "
+            f"(fewer pixels or bands) or use --light uniform.")
+    size = tile_px or _largest_tile(b, bands, halo, fixed, budget_bytes, rs.weight_cache_mb, itemsize, max(h, w))
+    if size is None:
+        raise TooLargeError(
+            f"rendering {h}×{w} px at {bands} band(s) needs about {format_bytes(whole)} whole and more than "
+            f"{format_bytes(budget_bytes)} even in tiles of {MIN_TILE_PX} px (the maps and the image alone take "
+            f"{format_bytes(fixed)}). Render a smaller grid or fewer bands, or raise SKINLAYERS_MEMORY_BUDGET_MB.")
+    peak = fixed + render_bytes(b, bands, size + 2 * halo, size + 2 * halo, 0, itemsize=itemsize,
+                                weight_cache_mb=rs.weight_cache_mb)
+    return MemoryPlan(size, halo, whole, peak, budget_bytes)
+
+
+def _largest_tile(b, bands, halo, fixed, budget, cache_mb, itemsize, longest) -> int | None:
+    """The largest tile core (a multiple of ``TILE_STEP_PX``, at least ``MIN_TILE_PX``) whose render fits
+    beside what stays whole; None where not even the smallest does."""
+    size = max(MIN_TILE_PX, (longest // TILE_STEP_PX) * TILE_STEP_PX)
+    while size >= MIN_TILE_PX:
+        need = fixed + render_bytes(b, bands, size + 2 * halo, size + 2 * halo, 0, itemsize=itemsize,
+                                    weight_cache_mb=cache_mb)
+        if need <= budget:
+            return size
+        size -= TILE_STEP_PX
+    return None
+
+
+def render_tiled(renderer: SkinRenderer, maps: SkinMaps, light: Light, wavelength_nm: torch.Tensor, tile_px: int,
+                 halo_px: int, progress: Callable[[int, int], None] | None = None, **render_options) -> torch.Tensor:
+    """The image ``(B, L, H, W)`` (float32, on the CPU) rendered tile by tile (uniform light only)."""
+    if not light.extends:
+        raise InputError("tiled rendering needs uniform light (other lights are placed on the whole grid)")
+    b, h, w = maps.shape
+    wl = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
+    cut = list(tiles(h, w, tile_px, halo_px))
+    terms = max(renderer.series_terms_for(_crop(maps, t), wl) for t in cut)  # the whole maps' worst pixel
+    out = torch.empty(b, wl.numel(), h, w, dtype=torch.float32)
+    for k, t in enumerate(cut):
+        with torch.no_grad():
+            image = renderer.render(_crop(maps, t), light, wl, series_terms=terms, **render_options).image
+        out[..., t.y0:t.y1, t.x0:t.x1] = image[..., t.y0 - t.ya:t.y1 - t.ya, t.x0 - t.xa:t.x1 - t.xa].float().cpu()
+        if progress is not None:
+            progress(k + 1, len(cut))
+    return out
+
+
+def _crop(maps: SkinMaps, t: Tile) -> SkinMaps:
+    """The maps of the tile's rendered region (core and halo)."""
+    def cut(v):
+        return None if v is None else v[..., t.ya:t.yb, t.xa:t.xb]
+
+    return maps.replace(C_m=cut(maps.C_m), beta_m=cut(maps.beta_m), C_he=cut(maps.C_he), C_bc=cut(maps.C_bc),
+                        C_hd=cut(maps.C_hd), rho_s=cut(maps.rho_s), absorbance=cut(maps.absorbance))
