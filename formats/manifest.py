@@ -127,6 +127,8 @@ def read_manifest(session: str | Path) -> Manifest:
         raise ManifestError(f"{path}: cannot read ({exc})") from None
     except json.JSONDecodeError as exc:
         raise ManifestError(f"{path}: not valid JSON ({exc})") from None
+    except RecursionError:  # the decoder recurses once per level of nesting
+        raise ManifestError(f"{path}: nested too deeply to be a manifest; refused") from None
     if not isinstance(data, dict):
         raise ManifestError(f"{path}: expected a JSON object")
     try:

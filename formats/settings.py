@@ -77,6 +77,8 @@ def read_yaml_mapping(path: str | Path, error: type[Exception] = SettingsError, 
         raise error(f"{path}: not UTF-8 text (byte {exc.start}); save it as UTF-8") from None
     except yaml.YAMLError as exc:
         raise error(f"{path}: not valid YAML ({_shorten(' '.join(str(exc).split()))})") from None
+    except RecursionError:  # the parser recurses once per level of nesting
+        raise error(f"{path}: nested more than {MAX_SETTINGS_DEPTH} levels deep; refused") from None
     _check_size(data, path, error)
     if data is None:
         return {}
