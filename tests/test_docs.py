@@ -15,7 +15,7 @@ README = ROOT / "README.md"
 #: The README is the way in; the reference lives in docs/.
 README_MAX_LINES = 150
 #: The reference pages every reader must be able to reach from the README.
-REFERENCE_PAGES = ("tutorial.md", "cli.md", "formats.md", "hardware.md", "accuracy.md", "speed.md")
+REFERENCE_PAGES = ("tutorial.md", "cli.md", "formats.md", "hardware.md", "accuracy.md", "speed.md", "limits.md")
 
 _LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\[\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 _FENCE = re.compile(r"^(```|~~~).*?^\1", re.S | re.M)

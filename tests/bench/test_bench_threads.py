@@ -55,7 +55,8 @@ def _demo(size: int, threads: str, folder: Path) -> tuple[float, str]:
                            "-o", str(folder)], capture_output=True, text=True, env=env)
     wall = time.perf_counter() - start
     assert proc.returncode == 0, proc.stderr[-2000:]
-    said = next((line.split(":", 1)[1].strip() for line in proc.stderr.splitlines() if line.startswith("threads:")), "")
+    said = next((line.split(":", 1)[1].strip() for line in (proc.stdout + proc.stderr).splitlines()
+                 if line.startswith("threads:")), "")
     return wall, said
 
 

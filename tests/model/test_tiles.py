@@ -59,3 +59,71 @@ def test_tiles_refuse_other_lights(renderer):
     maps = SkinMaps.uniform(TABLE2["III interior"], (16, 16), MM)
     with pytest.raises(ValueError, match="uniform light"):
         render_tiled(renderer, maps, Light("window", size_mm=0.5), WL, 8, 4)
+
+
+def _scene_maps(size: int, mm_per_pixel: float) -> SkinMaps:
+    from skinlayers.acquire.scene import SkinScene, load_scene
+
+    wavelengths = torch.arange(400.0, 701.0, 25.0, dtype=torch.float64)
+    return SkinScene(load_scene(None), 0).maps(mm_per_pixel, size, wavelengths)
+
+
+#: The largest relative difference allowed between the tiled and the whole render of a scene with the
+#: default halo (the renderer's 5 mm border): the light that travels farther than the halo
+#: (docs/renderer.md, "Tiles").
+TILE_TOLERANCE = 3e-4
+
+
+def _tiled_against_whole(renderer, maps, tile_px, halo_px):
+    with torch.no_grad():
+        whole = renderer.render(maps, Light("uniform"), WL).image.float()
+    tiled = render_tiled(renderer, maps, Light("uniform"), WL, tile_px, halo_px)
+    return float(((tiled - whole).abs() / whole.abs()).max())
+
+
+def test_tiles_of_a_scene_differ_from_the_whole_render_only_by_the_light_beyond_the_halo(renderer):
+    """Freckles, a scar, veins and hairs, 24 mm across in 192² px: tiles of 64 px with a 5 mm halo."""
+    maps = _scene_maps(192, 0.125)
+    halo = plan_render(maps.shape, maps.mm_per_pixel, 3, Light("uniform"), renderer, 0.0, tile_px=64).halo_px
+    assert halo == 40
+    close = _tiled_against_whole(renderer, maps, 64, halo)
+    near = _tiled_against_whole(renderer, maps, 64, 4)  # a halo of half a millimetre: the neighbours' light is missed
+    assert close < TILE_TOLERANCE and near > 10 * close, (close, near)
+
+
+@pytest.mark.slow
+def test_tiles_of_a_camera_sized_patch_match_the_whole_render_on_a_512_crop(renderer):
+    """The issue's check at the rig's pixel size (0.0293 mm): a 512² crop in tiles of 256 px, default halo."""
+    maps = _scene_maps(512, 7.5 / 256)
+    halo = plan_render(maps.shape, maps.mm_per_pixel, 3, Light("uniform"), renderer, 0.0, tile_px=256).halo_px
+    assert _tiled_against_whole(renderer, maps, 256, halo) < TILE_TOLERANCE
+
+
+def _uniform_maps_file(path, size: int, mm_per_pixel: float):
+    from skinlayers.model.maps_io import write_maps
+
+    write_maps(path, SkinMaps.uniform(TABLE2["III interior"], (size, size), mm_per_pixel))
+    return path
+
+
+def test_render_refuses_maps_too_large_for_the_budget_before_reading_them(tmp_path, run_cli, monkeypatch):
+    maps = _uniform_maps_file(tmp_path / "maps.exr", 64, 0.1)
+    monkeypatch.setenv("SKINLAYERS_MEMORY_BUDGET_MB", "1")
+    monkeypatch.setattr("skinlayers.model.maps_io.read_maps", lambda *a, **k: pytest.fail("the maps were read"))
+    code, _, err = run_cli("render", str(maps), "-o", str(tmp_path / "out"), "--bands", "560")
+    assert code == 1 and "needs about" in err and "even in tiles of 64 px" in err, err
+    assert not list(tmp_path.glob("out*")), "nothing written"
+
+
+def test_render_goes_to_tiles_when_the_whole_does_not_fit(tmp_path, run_cli, monkeypatch):
+    from skinlayers.formats.exr import read_spectral
+
+    maps = _uniform_maps_file(tmp_path / "maps.exr", 96, 0.1)
+    code, _, err = run_cli("render", str(maps), "-o", str(tmp_path / "whole"), "--bands", "470,560,650")
+    assert code == 0, err
+    code, out, err = run_cli("render", str(maps), "-o", str(tmp_path / "tiled"), "--bands", "470,560,650", "--tile", "32")
+    assert code == 0 and "tiles of 32 px with a 50-px halo" in out, out + err
+    whole, _, _ = read_spectral(tmp_path / "whole.exr")
+    tiled, _, header = read_spectral(tmp_path / "tiled.exr")
+    assert header["tile_px"] == "32"
+    torch.testing.assert_close(tiled, whole, rtol=2e-6, atol=0)
