@@ -449,7 +449,8 @@ def _render_tiles(maps, light, wl: torch.Tensor, settings: ModelSettings, blur, 
     with Progress(transient=True) as bar:
         task = bar.add_task(f"tiles of {plan.tile_px} px", total=None)
         image = render_tiled(SkinRenderer(settings), maps, light, wl, plan.tile_px, plan.halo_px,
-                             lambda done, total: bar.update(task, completed=done, total=total), blur=blur, **angles)
+                             lambda done, total: bar.update(task, completed=done, total=total),
+                             bands_per_pass=plan.bands_per_pass, blur=blur, **angles)
     extra = {"tile_px": str(plan.tile_px), "tile_halo_px": str(plan.halo_px)}
     return image[0], extra, plan.describe()
 

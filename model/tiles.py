@@ -32,6 +32,8 @@ __all__ = ["MemoryPlan", "Tile", "TooLargeError", "memory_budget_bytes", "plan_r
 MIN_TILE_PX = 64
 #: Tile cores are multiples of this (px).
 TILE_STEP_PX = 32
+#: Bands go in the fewest passes whose tile is at least this share of the largest tile any pass could have.
+NEARLY_LARGEST = 0.9
 #: The halo as a multiple of the renderer's border (render.border_mm): the light's reach.
 HALO_BORDERS = 1.0
 #: Bytes per pixel and band of what stays whole: the output image (float32) and its copy on writing.
@@ -67,9 +69,12 @@ class MemoryPlan:
     whole_bytes: float
     peak_bytes: float
     budget_bytes: float
+    bands_per_pass: int | None = None
 
     def describe(self) -> str:
         how = "whole" if self.tile_px is None else f"in tiles of {self.tile_px} px with a {self.halo_px}-px halo"
+        if self.bands_per_pass is not None:
+            how += f", {self.bands_per_pass} band(s) at a time"
         return (f"{how}: about {format_bytes(self.peak_bytes)} of a {format_bytes(self.budget_bytes)} budget "
                 f"(whole: {format_bytes(self.whole_bytes)})")
 
@@ -103,8 +108,9 @@ def memory_budget_bytes(device=None) -> float:
 
 def plan_render(maps_shape: tuple[int, int, int], mm_per_pixel: float, bands: int, light: Light, renderer: SkinRenderer,
                 budget_bytes: float, tile_px: int | None = None, itemsize: int = 4) -> MemoryPlan:
-    """Whole if it fits ``budget_bytes`` (and no ``tile_px`` is asked for), else the largest tile that
-    fits; ``TooLargeError`` with the estimate, the budget and the way out where nothing fits."""
+    """Whole if it fits ``budget_bytes`` (and no ``tile_px`` is asked for), else tiles: the bands rendered
+    in the fewest passes whose tile is nearly the largest any pass could have (a halo costs less beside a
+    large core); ``TooLargeError`` with the estimate, the budget and the way out where nothing fits."""
     b, h, w = maps_shape
     rs = renderer.settings.render
     border = light.border_px(mm_per_pixel, rs.border_mm)
@@ -118,15 +124,28 @@ def plan_render(maps_shape: tuple[int, int, int], mm_per_pixel: float, bands: in
             f"rendering {h}×{w} px at {bands} band(s) needs about {format_bytes(whole)}; the budget is "
             f"{format_bytes(budget_bytes)}, and only uniform light renders in tiles. Render a smaller grid "
             f"(fewer pixels or bands) or use --light uniform.")
-    size = tile_px or _largest_tile(b, bands, halo, fixed, budget_bytes, rs.weight_cache_mb, itemsize, max(h, w))
+    sizes = {g: tile_px if tile_px and _fits(b, g, tile_px, halo, fixed, budget_bytes, rs.weight_cache_mb, itemsize)
+             else (None if tile_px else _largest_tile(b, g, halo, fixed, budget_bytes, rs.weight_cache_mb, itemsize, max(h, w)))
+             for g in range(bands, 0, -1)}
+    best = max((t for t in sizes.values() if t is not None), default=None)
+    group = next((g for g, t in sizes.items() if t is not None and t >= NEARLY_LARGEST * best), None) if best else None
+    size = sizes[group] if group is not None else None
+    if size is not None and not tile_px:  # as many tiles, of even sizes (no sliver of a last tile)
+        count = math.ceil(max(h, w) / size)
+        size = min(size, TILE_STEP_PX * math.ceil(max(h, w) / count / TILE_STEP_PX))
     if size is None:
         raise TooLargeError(
             f"rendering {h}×{w} px at {bands} band(s) needs about {format_bytes(whole)} whole and more than "
             f"{format_bytes(budget_bytes)} even in tiles of {MIN_TILE_PX} px (the maps and the image alone take "
             f"{format_bytes(fixed)}). Render a smaller grid or fewer bands, or raise SKINLAYERS_MEMORY_BUDGET_MB.")
-    peak = fixed + render_bytes(b, bands, size + 2 * halo, size + 2 * halo, 0, itemsize=itemsize,
+    peak = fixed + render_bytes(b, group, size + 2 * halo, size + 2 * halo, 0, itemsize=itemsize,
                                 weight_cache_mb=rs.weight_cache_mb)
-    return MemoryPlan(size, halo, whole, peak, budget_bytes)
+    return MemoryPlan(size, halo, whole, peak, budget_bytes, group)
+
+
+def _fits(b, bands, size, halo, fixed, budget, cache_mb, itemsize) -> bool:
+    need = fixed + render_bytes(b, bands, size + 2 * halo, size + 2 * halo, 0, itemsize=itemsize, weight_cache_mb=cache_mb)
+    return need <= budget
 
 
 def _largest_tile(b, bands, halo, fixed, budget, cache_mb, itemsize, longest) -> int | None:
@@ -134,17 +153,17 @@ def _largest_tile(b, bands, halo, fixed, budget, cache_mb, itemsize, longest) ->
     beside what stays whole; None where not even the smallest does."""
     size = max(MIN_TILE_PX, (longest // TILE_STEP_PX) * TILE_STEP_PX)
     while size >= MIN_TILE_PX:
-        need = fixed + render_bytes(b, bands, size + 2 * halo, size + 2 * halo, 0, itemsize=itemsize,
-                                    weight_cache_mb=cache_mb)
-        if need <= budget:
+        if _fits(b, bands, size, halo, fixed, budget, cache_mb, itemsize):
             return size
         size -= TILE_STEP_PX
     return None
 
 
 def render_tiled(renderer: SkinRenderer, maps: SkinMaps, light: Light, wavelength_nm: torch.Tensor, tile_px: int,
-                 halo_px: int, progress: Callable[[int, int], None] | None = None, **render_options) -> torch.Tensor:
-    """The image ``(B, L, H, W)`` (float32, on the CPU) rendered tile by tile (uniform light only)."""
+                 halo_px: int, progress: Callable[[int, int], None] | None = None, bands_per_pass: int | None = None,
+                 **render_options) -> torch.Tensor:
+    """The image ``(B, L, H, W)`` (float32, on the CPU) rendered tile by tile (uniform light only), each
+    tile's bands ``bands_per_pass`` at a time (default: all at once)."""
     if not light.extends:
         raise InputError("tiled rendering needs uniform light (other lights are placed on the whole grid)")
     b, h, w = maps.shape
@@ -152,10 +171,12 @@ def render_tiled(renderer: SkinRenderer, maps: SkinMaps, light: Light, wavelengt
     cut = list(tiles(h, w, tile_px, halo_px))
     terms = max(renderer.series_terms_for(_crop(maps, t), wl) for t in cut)  # the whole maps' worst pixel
     out = torch.empty(b, wl.numel(), h, w, dtype=torch.float32)
+    step = bands_per_pass or wl.numel()
     for k, t in enumerate(cut):
-        with torch.no_grad():
-            image = renderer.render(_crop(maps, t), light, wl, series_terms=terms, **render_options).image
-        out[..., t.y0:t.y1, t.x0:t.x1] = image[..., t.y0 - t.ya:t.y1 - t.ya, t.x0 - t.xa:t.x1 - t.xa].float().cpu()
+        for j in range(0, wl.numel(), step):
+            with torch.no_grad():
+                image = renderer.render(_crop(maps, t), light, wl[j:j + step], series_terms=terms, **render_options).image
+            out[:, j:j + step, t.y0:t.y1, t.x0:t.x1] = image[..., t.y0 - t.ya:t.y1 - t.ya, t.x0 - t.xa:t.x1 - t.xa].float().cpu()
         if progress is not None:
             progress(k + 1, len(cut))
     return out

@@ -268,7 +268,7 @@ replies = st.one_of(st.binary(max_size=40), st.builds(lambda c, a, p: c + b"\r" 
 @_short(FUZZ_EXAMPLES)
 @given(answers=st.lists(replies, max_size=8), action=st.sampled_from(["identify", "position", "move"]))
 def test_wheel_serial_replies(answers, action):
-    wheel = FW102C(_Garbage(answers), timeout_s=0.02, move_timeout_s=0.05, retries=1)
+    wheel = FW102C(_Garbage(answers), timeout_s=0.005, move_timeout_s=0.01, retries=1)
     try:
         {"identify": wheel.identify, "position": wheel.position, "move": lambda: wheel.move_to(3)}[action]()
     except ALLOWED as exc:
