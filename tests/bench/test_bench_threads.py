@@ -5,7 +5,9 @@ cores, what the demo did before the policy), side by side in one run.
 A busy process is a Python loop that never sleeps (one core's worth). Each row is appended to
 ``threads.csv`` as soon as it is measured and a rerun skips the rows already there, so the benchmark can
 run in the background and be resumed. ``SKINLAYERS_BENCH_SIZES`` (default ``64``) picks the demo sizes,
-e.g. ``64,256``.
+e.g. ``64,256``; ``SKINLAYERS_BENCH_RUNS`` (default: every one) the runs, as ``busy:policy`` pairs, e.g.
+``0:auto,0:torch default,1:auto``; ``SKINLAYERS_BENCH_WARM=0`` skips the untimed first demo that fills
+the table cache.
 
     pytest -m bench tests/bench/test_bench_threads.py -s
 """
@@ -64,11 +66,14 @@ def test_demo_beside_busy_processes(tmp_path):
     path = out_dir() / "threads.csv"
     done = _done(path)
     sizes = [int(s) for s in os.environ.get("SKINLAYERS_BENCH_SIZES", "64").split(",")]
+    runs = os.environ.get("SKINLAYERS_BENCH_RUNS")
+    chosen = {tuple(r.split(":", 1)) for r in runs.split(",")} if runs else None
     for size in sizes:
-        _demo(size, "1", tmp_path / f"warm-{size}")  # tables built once, outside the timings
+        if os.environ.get("SKINLAYERS_BENCH_WARM", "1") != "0":
+            _demo(size, "1", tmp_path / f"warm-{size}")  # tables built once, outside the timings
         for busy in BUSY:
             for name, threads in POLICIES.items():
-                if (str(size), str(busy), name) in done:
+                if (str(size), str(busy), name) in done or (chosen is not None and (str(busy), name) not in chosen):
                     continue
                 loops = [subprocess.Popen([sys.executable, "-c", _BUSY_LOOP]) for _ in range(busy)]
                 try:
