@@ -28,6 +28,8 @@ from ``meta``, and their filters' width is None, which the fit reports.
 
 from __future__ import annotations
 
+import math
+
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -151,9 +153,12 @@ def read_cube(path: str | Path) -> Cube:
     for name in channels:
         if name.startswith("R_"):
             try:
-                bands.append((float(name[2:]), name))
+                nm = float(name[2:])
             except ValueError:
-                raise CubeError(f"{path}: channel {name} is not R_<nm>") from None
+                nm = math.nan
+            if not 0 < nm < math.inf:  # NaN included
+                raise CubeError(f"{path}: channel {name} is not R_<nm> (a wavelength in nm)")
+            bands.append((nm, name))
     if not bands:
         raise CubeError(f"{path}: no reflectance channels R_<nm> (has: {', '.join(sorted(channels)) or 'none'})")
     if "mask" not in channels:
@@ -178,6 +183,8 @@ def _header(attributes: dict, channel_nm: list[float], path: Path) -> CubeHeader
             raise CubeError(f"{path}: header attribute {_HEADER_ATTRIBUTE} is not valid JSON") from None
         if not isinstance(data, dict):
             raise CubeError(f"{path}: header attribute {_HEADER_ATTRIBUTE} is not a JSON object")
+        if not isinstance(data.get("wavelengths_nm") or [], list):
+            raise CubeError(f"{path}: header attribute {_HEADER_ATTRIBUTE}: wavelengths_nm is not a list")
         if len(data.get("wavelengths_nm") or []) != len(channel_nm):
             raise CubeError(f"{path}: the header lists {len(data.get('wavelengths_nm') or [])} bands, the file has {len(channel_nm)}")
     else:  # a cube from before the typed header: pixel size and camera angle from its attributes
@@ -202,4 +209,9 @@ def _header(attributes: dict, channel_nm: list[float], path: Path) -> CubeHeader
 
 
 def _text(value) -> str:
-    return value.decode() if isinstance(value, bytes) else str(value)
+    """A header attribute as text; a damaged one (undecodable bytes, an attribute of unknown type)
+    becomes text that the JSON reader then refuses."""
+    try:
+        return value.decode() if isinstance(value, bytes) else str(value)
+    except (UnicodeDecodeError, ValueError, TypeError, RuntimeError):
+        return "\ufffd"

@@ -106,8 +106,17 @@ def float_attribute(header: dict, key: str, path: Path, error: type[Exception] =
     try:
         value = float(header[key])
     except (TypeError, ValueError):
-        raise error(f"{path}: header attribute {key} must be a number, got {header[key]!r}") from None
+        raise error(f"{path}: header attribute {key} must be a number, got {shown(header[key])}") from None
     return float(f"{value:.7g}")
+
+
+def shown(value) -> str:
+    """A header value for an error message, shortened; a damaged file's attribute may not even print."""
+    try:
+        text = repr(value)
+    except (UnicodeDecodeError, ValueError, TypeError, RuntimeError):
+        return f"an unreadable {type(value).__name__}"
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def band_channels(channels: dict[str, np.ndarray], prefix: str) -> list[tuple[float, str]]:

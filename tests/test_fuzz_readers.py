@@ -307,3 +307,28 @@ def test_a_settings_file_nested_thousands_deep_is_refused_in_one_line(tmp_path):
     path.write_text("{" * 5000 + "}" * 5000 + "\n")
     with pytest.raises(SkinlayersError, match="nested more than"):
         load_fit_settings(path)
+
+
+def test_a_cube_channel_named_r_nan_is_refused_in_one_line(tmp_path):
+    """Found by the long fuzz pass: ``R_nan`` parsed as a wavelength of NaN, then no band was left to
+    stack (a RuntimeError traceback)."""
+    path = tmp_path / "cube.exr"
+    write_exr(path, {"R_nan": np.zeros((1, 1), np.float32), "mask": np.zeros((1, 1), np.float32)})
+    with pytest.raises(SkinlayersError, match="R_nan is not R_<nm>"):
+        read_cube(path)
+
+
+def test_a_header_attribute_that_cannot_even_print_is_refused_in_one_line(tmp_path):
+    """Found by the long fuzz pass: a damaged cube's attribute of unknown type, whose repr fails to
+    decode its bytes, turned the refusal itself into a UnicodeDecodeError traceback."""
+    from skinlayers.formats.exr import float_attribute
+
+    class Damaged:
+        def __float__(self):
+            raise TypeError("opaque")
+
+        def __repr__(self):
+            return b"\x80".decode()
+
+    with pytest.raises(SkinlayersError, match="must be a number, got an unreadable Damaged"):
+        float_attribute({"mm_per_pixel": Damaged()}, "mm_per_pixel", tmp_path / "cube.exr", SkinlayersError)
