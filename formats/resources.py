@@ -8,11 +8,12 @@ when the estimate exceeds what is available, naming both and the setting to chan
 
 from __future__ import annotations
 
+import math
 import os
 
 from .errors import InputError
 
-__all__ = ["ResourceError", "available_memory_bytes", "format_bytes", "require_memory"]
+__all__ = ["ResourceError", "available_memory_bytes", "format_bytes", "memory_budget_bytes", "require_memory"]
 
 #: Work may take at most this share of the memory available when it starts (the rest: the process's
 #: own tensors, the allocator's slack, other programs).
@@ -42,6 +43,22 @@ def available_memory_bytes(device=None) -> int | None:
         return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def memory_budget_bytes(device=None) -> float:
+    """The budget a render may use: ``SKINLAYERS_MEMORY_BUDGET_MB`` if set, else the usable share of the
+    memory available now; infinite where neither is known."""
+    text = os.environ.get("SKINLAYERS_MEMORY_BUDGET_MB")
+    if text:
+        try:
+            value = float(text)
+        except ValueError:
+            value = -1.0
+        if not value > 0:
+            raise InputError(f"SKINLAYERS_MEMORY_BUDGET_MB: a size in MB greater than 0, got {text!r}")
+        return value * 2**20
+    available = available_memory_bytes(device)
+    return math.inf if available is None else USABLE_SHARE * available
 
 
 def format_bytes(n: float) -> str:

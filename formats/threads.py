@@ -128,11 +128,13 @@ def choose_threads(requested: int | str | None = None) -> ThreadChoice:
     """The policy: ``requested`` (``--threads``), else ``SKINLAYERS_THREADS``, else ``auto``: the usable
     cores that are idle now, at least one."""
     cpus = usable_cpus()
-    if requested is not None and _parse(requested, "--threads") is not None:
-        return ThreadChoice(_parse(requested, "--threads"), cpus, None, "as asked (--threads)")
+    asked = _parse(requested, "--threads") if requested is not None else None
+    if asked is not None:
+        return ThreadChoice(asked, cpus, None, "as asked (--threads)")
     env = os.environ.get(THREADS_ENV)
-    if requested is None and env is not None and _parse(env, THREADS_ENV) is not None:
-        return ThreadChoice(_parse(env, THREADS_ENV), cpus, None, f"as asked ({THREADS_ENV}={env})")
+    from_env = _parse(env, THREADS_ENV) if requested is None and env is not None else None
+    if from_env is not None:
+        return ThreadChoice(from_env, cpus, None, f"as asked ({THREADS_ENV}={env})")
     free = idle_cpus()
     if free is None:
         return ThreadChoice(cpus, cpus, None, f"{cpus} usable core(s); their load is unknown here")

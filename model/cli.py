@@ -351,7 +351,8 @@ def render(
         elif plan is not None and plan.tile_px is not None:
             (image, extra, how), se = _render_tiles(maps.to(dev), lit, wl, settings, blur, angles, plan), None
         else:
-            (image, extra, how), se = _render_diffusion(maps.to(dev), lit, wl, settings, dev, blur, angles), None
+            passes = plan.bands_per_pass if plan is not None else None
+            (image, extra, how), se = _render_diffusion(maps.to(dev), lit, wl, settings, blur, angles, passes), None
         seconds = time.perf_counter() - start
         write_spectral(staging.path(names[0]), image, wl, maps.mm_per_pixel,
                        attributes={"light": light, "software": "skinlayers", "physics": physics, **extra},
@@ -386,13 +387,15 @@ def _edited_maps(maps_file: Path, swap: list[str], edit: list[str], tattoo: Path
     return maps
 
 
-def _render_diffusion(maps, light, wl: torch.Tensor, settings: ModelSettings, device, blur, angles: dict):
-    """The diffusion renderer, in band groups that fit in memory: the image ``(L, H, W)``, header extras, a note."""
+def _render_diffusion(maps, light, wl: torch.Tensor, settings: ModelSettings, blur, angles: dict, bands_per_pass):
+    """The diffusion renderer, whole, ``bands_per_pass`` bands at a time (None: all; the memory plan's):
+    the image ``(L, H, W)``, header extras, a note."""
     from .renderer import SkinRenderer  # noqa: PLC0415
 
     renderer = SkinRenderer(settings)
     images, terms = [], []
-    groups = _band_groups(maps, light, wl, settings, device)
+    step = bands_per_pass or wl.numel()
+    groups = [slice(k, k + step) for k in range(0, wl.numel(), step)]
     # every group takes the terms all bands at once would: grouping changes nothing in the image
     series = renderer.series_terms_for(maps, wl) if len(groups) > 1 else None
     for group in groups:
@@ -425,7 +428,8 @@ def _memory_plan(maps_file: Path, light, wl: torch.Tensor, settings: ModelSettin
     from ..formats.exr import read_exr_header  # noqa: PLC0415
     from ..formats.maps import MapsError  # noqa: PLC0415
     from .renderer import SkinRenderer  # noqa: PLC0415
-    from .tiles import memory_budget_bytes, plan_render  # noqa: PLC0415
+    from ..formats.resources import memory_budget_bytes  # noqa: PLC0415
+    from .tiles import plan_render  # noqa: PLC0415
 
     if tile < 0 or 0 < tile < 16:
         raise InputError(f"--tile {tile}: 0 (automatic) or a tile side of at least 16 px")
@@ -462,20 +466,6 @@ def _srgb_rows(converter: ColourConverter, image: torch.Tensor, rows: int = 256)
     for y in range(0, image.shape[1], rows):
         out[y:y + rows] = converter.srgb(image[:, y:y + rows].permute(1, 2, 0)).float()
     return out
-
-
-def _band_groups(maps, light, wl: torch.Tensor, settings: ModelSettings, device) -> list[slice]:
-    """The bands in groups that each fit in the memory available (the bands render independently); one
-    band that does not fit is refused by the renderer itself."""
-    from ..formats.resources import USABLE_SHARE, available_memory_bytes  # noqa: PLC0415
-    from .renderer import render_bytes  # noqa: PLC0415
-
-    _, h, w = maps.shape
-    border = light.border_px(maps.mm_per_pixel, settings.render.border_mm)
-    per_band = render_bytes(1, 1, h, w, border, itemsize=maps.dtype.itemsize, weight_cache_mb=settings.render.weight_cache_mb)
-    available = available_memory_bytes(device)
-    size = wl.numel() if available is None else max(1, min(wl.numel(), int(USABLE_SHARE * available // per_band)))
-    return [slice(k, k + size) for k in range(0, wl.numel(), size)]
 
 
 def _write_png(path: Path, rgb: torch.Tensor) -> None:

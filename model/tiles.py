@@ -20,16 +20,18 @@ from typing import Callable, Iterator
 
 import torch
 
-from ..formats.resources import USABLE_SHARE, available_memory_bytes, format_bytes
 from ..formats.errors import InputError
+from ..formats.resources import USABLE_SHARE, ResourceError, format_bytes
 from .illumination import Light
 from .maps import SkinMaps
 from .renderer import SkinRenderer, render_bytes
 
-__all__ = ["MemoryPlan", "Tile", "TooLargeError", "memory_budget_bytes", "plan_render", "render_tiled", "tiles"]
+__all__ = ["MemoryPlan", "Tile", "TooLargeError", "plan_render", "render_tiled", "tiles"]
 
 #: Smallest tile core (px): below this a tile's halo costs more than its core.
 MIN_TILE_PX = 64
+#: Where the budget comes from, for the refusals.
+_BUDGET_SOURCE = f"SKINLAYERS_MEMORY_BUDGET_MB, else {USABLE_SHARE:.0%} of the memory available here"
 #: Tile cores are multiples of this (px).
 TILE_STEP_PX = 32
 #: Bands go in the fewest passes whose tile is at least this share of the largest tile any pass could have.
@@ -42,7 +44,7 @@ _OUTPUT_BYTES_PER_CELL = 8
 _MAPS_BYTES_PER_PX = 48
 
 
-class TooLargeError(InputError):
+class TooLargeError(ResourceError):
     """Work that cannot fit in the memory budget even in tiles; the message says what it needs."""
 
 
@@ -88,24 +90,6 @@ def tiles(height: int, width: int, tile_px: int, halo_px: int) -> Iterator[Tile]
                        max(0, x0 - halo_px), min(width, x1 + halo_px))
 
 
-def memory_budget_bytes(device=None) -> float:
-    """The budget a render may use: ``SKINLAYERS_MEMORY_BUDGET_MB`` if set, else the usable share of the
-    memory available now (``formats.resources``); infinite where neither is known."""
-    import os  # noqa: PLC0415
-
-    text = os.environ.get("SKINLAYERS_MEMORY_BUDGET_MB")
-    if text:
-        try:
-            value = float(text)
-        except ValueError:
-            value = -1.0
-        if not value > 0:
-            raise InputError(f"SKINLAYERS_MEMORY_BUDGET_MB: a size in MB greater than 0, got {text!r}")
-        return value * 2**20
-    available = available_memory_bytes(device)
-    return math.inf if available is None else USABLE_SHARE * available
-
-
 def plan_render(maps_shape: tuple[int, int, int], mm_per_pixel: float, bands: int, light: Light, renderer: SkinRenderer,
                 budget_bytes: float, tile_px: int | None = None, itemsize: int = 4) -> MemoryPlan:
     """Whole if it fits ``budget_bytes`` (and no ``tile_px`` is asked for), else tiles: the bands rendered
@@ -117,13 +101,15 @@ def plan_render(maps_shape: tuple[int, int, int], mm_per_pixel: float, bands: in
     halo = int(math.ceil(HALO_BORDERS * rs.border_mm / mm_per_pixel))
     fixed = b * h * w * (_MAPS_BYTES_PER_PX + _OUTPUT_BYTES_PER_CELL * bands)
     whole = fixed + render_bytes(b, bands, h, w, border, itemsize=itemsize, weight_cache_mb=rs.weight_cache_mb)
-    if tile_px is None and whole <= budget_bytes:
-        return MemoryPlan(None, halo, whole, whole, budget_bytes)
+    for group in range(bands, 0, -1) if tile_px is None else ():  # whole, in the fewest band passes that fit
+        need = fixed + render_bytes(b, group, h, w, border, itemsize=itemsize, weight_cache_mb=rs.weight_cache_mb)
+        if need <= budget_bytes:
+            return MemoryPlan(None, halo, whole, need, budget_bytes, None if group == bands else group)
     if not light.extends:
         raise TooLargeError(
             f"rendering {h}×{w} px at {bands} band(s) needs about {format_bytes(whole)}; the budget is "
-            f"{format_bytes(budget_bytes)}, and only uniform light renders in tiles. Render a smaller grid "
-            f"(fewer pixels or bands) or use --light uniform.")
+            f"{format_bytes(budget_bytes)} ({_BUDGET_SOURCE}), and only uniform light renders in tiles. Render fewer bands "
+            f"or a smaller grid, or use --light uniform.")
     sizes = {g: tile_px if tile_px and _fits(b, g, tile_px, halo, fixed, budget_bytes, rs.weight_cache_mb, itemsize)
              else (None if tile_px else _largest_tile(b, g, halo, fixed, budget_bytes, rs.weight_cache_mb, itemsize, max(h, w)))
              for g in range(bands, 0, -1)}
@@ -136,7 +122,7 @@ def plan_render(maps_shape: tuple[int, int, int], mm_per_pixel: float, bands: in
     if size is None:
         raise TooLargeError(
             f"rendering {h}×{w} px at {bands} band(s) needs about {format_bytes(whole)} whole and more than "
-            f"{format_bytes(budget_bytes)} even in tiles of {MIN_TILE_PX} px (the maps and the image alone take "
+            f"{format_bytes(budget_bytes)} ({_BUDGET_SOURCE}) even in tiles of {MIN_TILE_PX} px (the maps and the image alone take "
             f"{format_bytes(fixed)}). Render a smaller grid or fewer bands, or raise SKINLAYERS_MEMORY_BUDGET_MB.")
     peak = fixed + render_bytes(b, group, size + 2 * halo, size + 2 * halo, 0, itemsize=itemsize,
                                 weight_cache_mb=rs.weight_cache_mb)

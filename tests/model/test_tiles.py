@@ -33,10 +33,13 @@ def test_tile_cores_cover_every_pixel_once_and_halos_stay_inside():
 def test_the_plan_is_whole_when_it_fits_and_tiles_when_it_does_not(renderer):
     whole = plan_render((1, 512, 512), MM, 9, Light("uniform"), renderer, budget_bytes=1e12)
     assert whole.tile_px is None and whole.peak_bytes == whole.whole_bytes
-    budget = whole.whole_bytes / 2
+    for light in (Light("uniform"), Light("window", size_mm=7.5)):  # whole in fewer band passes, any light
+        passes = plan_render((1, 512, 512), MM, 9, light, renderer, budget_bytes=whole.whole_bytes / 2)
+        assert passes.tile_px is None and passes.bands_per_pass < 9 and passes.peak_bytes <= whole.whole_bytes / 2
+    one_band = plan_render((1, 512, 512), MM, 1, Light("uniform"), renderer, budget_bytes=1e12).peak_bytes
+    budget = 0.9 * (one_band + 512 * 512 * 8 * 8)  # not even one band whole, the image of nine kept
     tiled = plan_render((1, 512, 512), MM, 9, Light("uniform"), renderer, budget_bytes=budget)
-    assert tiled.tile_px is not None and tiled.peak_bytes <= budget
-    assert tiled.tile_px < 512 or tiled.bands_per_pass < 9  # smaller tiles, or fewer bands a pass
+    assert tiled.tile_px is not None and tiled.tile_px < 512 and tiled.peak_bytes <= budget
     assert tiled.halo_px == 100  # the renderer's 5 mm of border at 0.05 mm a pixel
     assert plan_render((1, 512, 512), MM, 9, Light("uniform"), renderer, 1e12, tile_px=128).tile_px == 128
 
