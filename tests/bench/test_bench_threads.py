@@ -26,8 +26,9 @@ from bench_io import out_dir
 
 pytestmark = pytest.mark.bench
 
-#: The thread settings compared: the policy, and torch's default on this machine (as before the policy).
-POLICIES = {"auto": "auto", "torch default": str(len(os.sched_getaffinity(0)))}
+#: The thread settings compared: the policy, torch's default on this machine (as before the policy), and one
+#: thread (alone, the floor of any run beside a busy process on two cores).
+POLICIES = {"auto": "auto", "torch default": str(len(os.sched_getaffinity(0))), "one thread": "1"}
 BUSY = (0, 1, 2)
 _BUSY_LOOP = "while True: pass"
 FIELDS = ["size", "busy", "policy", "threads_said", "wall_s"]
