@@ -14,6 +14,7 @@ import sys
 
 import typer
 
+from . import batch as batch_cli
 from . import demo as demo_cli
 from . import stability as stability_analysis
 from . import tradeoff as tradeoff_analysis
@@ -67,6 +68,7 @@ reconstruct_cli.register(app)
 demo_cli.register(app)
 tradeoff_analysis.register(app)
 stability_analysis.register(app)
+batch_cli.register(app)
 
 
 def main() -> None:

@@ -1,0 +1,113 @@
+"""A study's throughput (issue 20): sessions an hour against Dask workers (1, 2) on this machine, and the
+per-task overhead of Dask against a plain loop over the same sessions, side by side in one run.
+
+``SKINLAYERS_BENCH_BATCH_SESSIONS`` (default 4) simulated sessions of the demo's scene at 64² (the default
+rig's nine bands), made and calibrated once in ``bench_results/batch_sessions/``; each run then fits them
+all afresh (``--steps reconstruct``; their ``_reconstruction`` folders removed first), one torch thread a
+task as the batch runs them:
+
+- ``loop``: ``process_session`` for each session in turn, in this process (no Dask);
+- ``dask``: ``run_batch`` on a ``LocalCluster`` of 1 and of 2 worker processes. The cluster's start and
+  the workers' first imports (``startup_s``) are timed apart: a study pays them once.
+
+The per-task overhead is (dask with one worker − loop) / sessions, and its share of one 64²
+reconstruction (the loop's time a session). Rows are appended to ``batch.csv`` as they are measured.
+
+    pytest -m bench tests/bench/test_bench_batch.py -s
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import time
+from pathlib import Path
+
+import pytest
+from bench_io import out_dir
+
+pytestmark = pytest.mark.bench
+
+FIELDS = ["mode", "workers", "sessions", "startup_s", "wall_s", "sessions_per_hour", "per_task_overhead_s", "overhead_share"]
+SIZE = 64
+
+
+def _sessions(count: int) -> Path:
+    """``count`` simulated, calibrated 64² sessions (made once)."""
+    import yaml
+
+    from skinlayers.calibration import calibrate_session
+    from skinlayers.demo import demo_scene, session_rig, simulate_session
+    from skinlayers.formats.cube import calibrated_dir
+
+    folder = out_dir() / "batch_sessions"
+    scene = folder / "scene.yaml"
+    folder.mkdir(parents=True, exist_ok=True)
+    scene.write_text(yaml.safe_dump(demo_scene()))
+    for seed in range(count):
+        session = folder / "study" / f"s{seed}"
+        if not (session / "manifest.json").is_file():
+            shutil.rmtree(session, ignore_errors=True)
+            simulate_session(session, session_rig(SIZE), scene, seed, device="cpu")
+        if not (calibrated_dir(session) / "calibration.json").is_file():
+            calibrate_session(session, calibrated_dir(session))
+    return folder / "study"
+
+
+def _fresh(sessions) -> None:
+    from skinlayers.batch import reconstruction_dir
+
+    for s in sessions:
+        shutil.rmtree(reconstruction_dir(s.path), ignore_errors=True)
+
+
+def _row(mode: str, workers: int, n: int, startup_s: float, wall_s: float) -> dict:
+    return {"mode": mode, "workers": workers, "sessions": n, "startup_s": round(startup_s, 2), "wall_s": round(wall_s, 2),
+            "sessions_per_hour": round(3600 * n / wall_s, 1)}
+
+
+def test_batch_throughput_against_workers():
+    from distributed import Client, LocalCluster
+
+    from skinlayers.batch import BatchOptions, process_session, read_study, run_batch
+    from skinlayers.formats.threads import use_threads, choose_threads
+
+    count = int(os.environ.get("SKINLAYERS_BENCH_BATCH_SESSIONS", "4"))
+    sessions = read_study(_sessions(count))
+    options = BatchOptions(steps=("reconstruct",), device="cpu")
+    rows = []
+    _fresh(sessions)
+    start = time.perf_counter()
+    outcomes = [process_session(s, options) for s in sessions]
+    rows.append(_row("loop", 1, count, 0.0, time.perf_counter() - start))
+    use_threads(choose_threads(2))
+    assert all(o.status == "done" for o in outcomes), [o.error for o in outcomes]
+    for workers in (1, 2):
+        _fresh(sessions)
+        start = time.perf_counter()
+        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+                Client(cluster) as client:
+            client.run(lambda: __import__("skinlayers.reconstruct.fit"))  # the workers' first imports, as a study pays once
+            startup = time.perf_counter() - start
+            start = time.perf_counter()
+            result = run_batch(sessions, options, out_dir() / "batch_study", client=client)
+            rows.append(_row("dask", workers, count, startup, time.perf_counter() - start))
+        assert result.count("done") == count, [o.error for o in result.outcomes.values()]
+    loop_s, dask1_s = rows[0]["wall_s"], rows[1]["wall_s"]
+    for row in rows[1:2]:
+        row["per_task_overhead_s"] = round((dask1_s - loop_s) / count, 3)
+        row["overhead_share"] = round((dask1_s - loop_s) / loop_s, 4)
+    _write(rows)
+
+
+def _write(rows: list[dict]) -> None:
+    path = out_dir() / "batch.csv"
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=FIELDS)
+        if new:
+            writer.writeheader()
+        writer.writerows(rows)
+    for row in rows:
+        print("  " + ", ".join(f"{k}={v}" for k, v in row.items()), flush=True)

@@ -1,0 +1,197 @@
+"""``skinlayers batch`` on a Dask LocalCluster with tiny simulated sessions (16² cubes, six bands): a
+corrupt session is recorded and does not stop the others, a rerun retries only what failed, the study
+table equals the one computed session by session, and a worker killed during a task costs nothing."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import shutil
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+#: Six bands: one per parameter and the global scale (reconstruct.checks.MIN_BANDS).
+BANDS = (430.0, 490.0, 550.0, 580.0, 610.0, 670.0)
+SEEDS = (1, 2, 3)
+
+
+@pytest.fixture(scope="module")
+def made_sessions(tmp_path_factory) -> Path:
+    """Three simulated sessions of a 16² cube, made once; each test copies them."""
+    import yaml
+
+    from skinlayers.acquire.rig import load_rig
+    from skinlayers.demo import demo_scene, simulate_session
+
+    folder = tmp_path_factory.mktemp("made")
+    by_nm = {b.wavelength_nm: b for b in load_rig().bands}
+    rig = load_rig(bands=[by_nm[b].model_dump() for b in BANDS], geometry={"cube_px": 16, "rectify_px": 128},
+                   camera={"driver": "simulated"})
+    scene = folder / "scene.yaml"
+    scene.write_text(yaml.safe_dump(demo_scene()))
+    for seed in SEEDS:
+        simulate_session(folder / "study" / f"s{seed}", rig, scene, seed, device="cpu")
+    return folder / "study"
+
+
+@pytest.fixture
+def study(made_sessions, tmp_path) -> Path:
+    shutil.copytree(made_sessions, tmp_path / "study")
+    return tmp_path / "study"
+
+
+@pytest.fixture
+def client():
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as c:
+        yield c
+
+
+def _corrupt(session: Path) -> Path:
+    frame = sorted(session.glob("**/*.dng"))[0]
+    frame.write_bytes(frame.read_bytes()[:1000])
+    return frame
+
+
+def _leftovers(study: Path) -> list[Path]:
+    return [p for p in study.parent.rglob("*") if p.name.startswith((".staging-", ".skinlayers.lock", ".tmp-"))]
+
+
+def test_a_corrupt_session_fails_alone_and_only_it_is_retried(study, tmp_path, client):
+    from skinlayers.batch import BatchOptions, read_study, reconstruction_dir, run_batch, write_study
+    from skinlayers.study import session_summary
+
+    bad = _corrupt(study / "s2")
+    sessions = read_study(study)
+    out = tmp_path / "out"
+    first = run_batch(sessions, BatchOptions(), out, client=client)
+    assert {n: o.status for n, o in first.outcomes.items()} == {"s1": "done", "s2": "failed", "s3": "done"}
+    assert bad.name in first.outcomes["s2"].error and "\n" not in first.outcomes["s2"].error
+    assert not (study / "s2_calibrated" / "calibration.json").exists()
+    assert not (study / "s2_reconstruction").exists()
+    stamps = {n: (reconstruction_dir(s.path) / "fit.json").stat().st_mtime_ns for n, s in zip(("s1", "s3"), (sessions[0], sessions[2]))}
+
+    second = run_batch(sessions, BatchOptions(), out, client=client)
+    assert [(o.status, o.ran) for o in second.outcomes.values()] == [("skipped", ()), ("failed", ()), ("skipped", ())]
+    assert stamps == {n: (reconstruction_dir(s.path) / "fit.json").stat().st_mtime_ns for n, s in zip(("s1", "s3"), (sessions[0], sessions[2]))}
+    assert _leftovers(study) == []
+
+    paths = write_study(out, sessions, second.outcomes)
+    rows = {r["session"]: r for r in csv.DictReader((out / "study.csv").open())}
+    for s in (sessions[0], sessions[2]):  # the table equals the one computed session by session
+        expected = session_summary(reconstruction_dir(s.path))
+        assert {k: float(rows[s.name][k]) for k in expected} == pytest.approx(expected, rel=0, abs=0, nan_ok=True)
+        assert rows[s.name]["subject"] == "demo" and rows[s.name]["status"] == "skipped"
+    assert rows["s2"]["status"] == "failed" and rows["s2"]["C_m_trimmed_mean"] == ""
+    assert paths["maps"].stat().st_size > 0 and (out / "batch.json").is_file()
+
+
+def test_a_worker_killed_during_a_task_costs_no_session(study, tmp_path, client):
+    from skinlayers.batch import BatchOptions, read_study, reconstruction_dir, run_batch
+
+    sessions = read_study(study)
+    result: dict = {}
+    runner = threading.Thread(target=lambda: result.update(r=run_batch(sessions, BatchOptions(), tmp_path / "out", client=client)))
+    runner.start()
+    busy = _busy_worker(client)
+    killed_task = next(iter(client.processing()[busy]))
+    time.sleep(1.0)  # well inside the task: the calibration or the fit is writing its staging folder
+    pid = client.run(os.getpid, workers=[busy])[busy]
+    os.kill(pid, signal.SIGKILL)
+    runner.join(timeout=300)
+    assert not runner.is_alive()
+    outcomes = result["r"].outcomes
+    assert sorted(outcomes) == ["s1", "s2", "s3"] and all(o.status == "done" for o in outcomes.values()), outcomes
+    for s in sessions:
+        assert (reconstruction_dir(s.path) / "fit.json").is_file()
+    assert _leftovers(study) == []
+    processing = [entry for entry in client.story(killed_task) if entry[0] == "scheduler" and entry[2] == "processing"]
+    assert len(processing) == 2  # the task was running when its worker died, and ran again
+
+
+def _busy_worker(client, timeout_s: float = 60.0) -> str:
+    """The address of a worker running a task (waits for one)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        busy = [w for w, tasks in client.processing().items() if tasks]
+        if busy:
+            return busy[0]
+        time.sleep(0.05)
+    raise AssertionError("no task started")
+
+
+def test_the_study_statistics_on_a_constructed_table():
+    from skinlayers.study import group_statistics, principal_components, trimmed_mean, visit_changes
+
+    assert trimmed_mean([*range(1, 10), 1000.0]) == pytest.approx(5.5)  # the largest and the smallest of ten cut
+    rows = [{"session": f"v{i}", "subject": "a" if i < 2 else "b", "site": "arm", "date": f"2026-0{i + 1}-01",
+             **{f"{m}_trimmed_mean": float(i + 1) * (2.0 if m == "C_hd" else 1.0) for m in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")}}
+            for i in range(4)]
+    groups = group_statistics(rows, "subject")
+    assert groups["a"]["sessions"] == 2 and groups["a"]["C_m"]["trimmed_mean"] == pytest.approx(1.5)
+    assert groups["b"]["C_hd"]["sd"] == pytest.approx(math.sqrt(2.0))
+    pca = principal_components(rows)  # every map a multiple of the session's index: one component holds it all
+    assert pca["explained"][0] == pytest.approx(1.0)
+    changes = visit_changes(rows)
+    assert [(c["from"], c["to"]) for c in changes] == [("v0", "v1"), ("v2", "v3")]
+    assert changes[0]["change"]["C_hd"] == pytest.approx(2.0) and changes[1]["relative_change"]["C_m"] == pytest.approx(1 / 3)
+
+
+@pytest.mark.parametrize("text, words", [
+    ("subject,site\nA,arm\n", "'session' column"),
+    ("session,subject\ns1,A\ns1,B\n", "listed twice"),
+    ("session,subject\n,A\n", "line 2: no session"),
+])
+def test_a_bad_study_list_is_refused_in_one_line(tmp_path, run_cli, text, words):
+    listing = tmp_path / "study.csv"
+    listing.write_text(text)
+    code, _, err = run_cli("batch", str(listing))
+    assert code == 1 and words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_bad_options_are_refused_before_any_worker_starts(study, run_cli):
+    code, _, err = run_cli("batch", str(study), "--steps", "calibrate,paint")
+    assert code == 1 and "--steps" in err
+    code, _, err = run_cli("batch", str(study / "s1" / "truth"))
+    assert code == 1 and "no sessions" in err
+
+
+def test_a_csv_study_keeps_its_columns_and_groups_by_them(tmp_path):
+    import json
+
+    from skinlayers.batch import SessionOutcome, read_study, write_study
+
+    (tmp_path / "listing.csv").write_text("session,subject,skin_type\nA/v1,A,II\nA/v2,A,II\nB/v1,,V\n")
+    sessions = read_study(tmp_path / "listing.csv")
+    assert [s.path for s in sessions] == [tmp_path / "A/v1", tmp_path / "A/v2", tmp_path / "B/v1"]
+    summary = lambda k: {f"{m}_trimmed_mean": float(k) for m in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")}  # noqa: E731
+    outcomes = {"A/v1": SessionOutcome("A/v1", "done", manifest={"subject": "ignored", "site": "arm"}, summary=summary(1)),
+                "A/v2": SessionOutcome("A/v2", "done", manifest={"site": "arm"}, summary=summary(3)),
+                "B/v1": SessionOutcome("B/v1", "failed", error="InputError: a frame is damaged")}
+    write_study(tmp_path / "out", sessions, outcomes, figures=False)
+    rows = list(csv.DictReader((tmp_path / "out" / "study.csv").open()))
+    assert [(r["subject"], r["site"], r["skin_type"], r["status"]) for r in rows] == [
+        ("A", "arm", "II", "done"), ("A", "arm", "II", "done"), ("", "", "V", "failed")]  # the list's columns win
+    record = json.loads((tmp_path / "out" / "study.json").read_text())
+    assert record["reconstructed"] == 2 and record["failed"] == {"B/v1": "InputError: a frame is damaged"}
+    assert record["groups"] == {}  # both reconstructed sessions share every column: nothing to group
+    record = write_study(tmp_path / "out2", sessions, outcomes, group_by=["skin_type"], figures=False)
+    groups = json.loads((tmp_path / "out2" / "study.json").read_text())["groups"]["skin_type"]
+    assert groups["II"]["sessions"] == 2 and groups["II"]["C_m"]["trimmed_mean"] == pytest.approx(2.0)
+
+
+def test_a_step_cut_short_before_its_marker_is_run_again(study):
+    from skinlayers.batch import BatchOptions, process_session, read_study
+
+    stale = study / "s1_calibrated" / "cube.exr"  # moved into place; the marker never written
+    stale.parent.mkdir()
+    stale.write_bytes(b"half of an earlier attempt")
+    outcome = process_session(read_study(study)[0], BatchOptions())
+    assert (outcome.status, outcome.ran) == ("done", ("calibrate", "reconstruct")), outcome.error
+    assert stale.read_bytes()[:4] == b"\x76\x2f\x31\x01"  # an OpenEXR file now
