@@ -47,7 +47,7 @@ from .rig import BandConfig, RigConfig, load_rig, rig_from_dict
 from .scene import SceneConfig, SkinScene, load_scene
 from .simulation_settings import SimulationError, SimulationSettings, load_simulation_settings
 
-__all__ = ["SimulatedBench", "SimulatedFrame", "Target"]
+__all__ = ["SimulatedBench", "SimulatedFrame", "Target", "flash_power"]
 
 Target = Literal["skin", "spectralon"]
 _ROWS_PER_CHUNK = 128  # rows of the sensor warped at once (bounds the memory of the supersampled grid)
@@ -141,16 +141,7 @@ class SimulatedBench:
                        "Lower the rig's geometry.cube_px or the simulation's truth.oversample.", self.device)
 
     def _flash_power(self) -> float:
-        """``white_electrons`` at which the brightest reference frame of the rig (Spectralon at the image
-        centre, the flash at its strongest) reaches ``sensor.reference_fill`` of the range."""
-        s = self.settings
-        brightest = max(
-            self.spectra[b.wavelength_nm].channel_signal.max() / self._reference_signal
-            * self.rig.targets.spectralon_at(b.wavelength_nm) * self.rig.polarization.spectralon_factor
-            * (1.0 + s.flash.jitter) * (10.0 / b.aperture_f) ** 2 / e_per_dn(s.sensor, b.iso)
-            for b in self.rig.bands
-        )
-        return s.sensor.reference_fill * (s.sensor.white_level - max(s.sensor.black_level)) / brightest
+        return flash_power(self.settings, self.rig, self.spectra, self._reference_signal)
 
     def electrons_per_reflectance(self, band_nm: float, aperture_f: float) -> np.ndarray:
         """Mean electrons ``(3,)`` (red, green, blue) at the image centre per unit reflectance factor,
@@ -438,3 +429,17 @@ def _frame_seed(seed: int, state: str, position: int, count: int) -> int:
 
 def _write_json(path: Path, data: dict) -> Path:
     return atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
+
+
+def flash_power(settings: SimulationSettings, rig: RigConfig, spectra: dict, reference_signal: float) -> float:
+    """``white_electrons`` at which the brightest reference frame of ``rig`` (Spectralon at the image
+    centre, the flash at its strongest) reaches ``sensor.reference_fill`` of the range; ``spectra``: each
+    band's ``BandSpectrum`` by wavelength, ``reference_signal``: the unit's (green, 10 nm at 550 nm)."""
+    s = settings
+    brightest = max(
+        spectra[b.wavelength_nm].channel_signal.max() / reference_signal
+        * rig.targets.spectralon_at(b.wavelength_nm) * rig.polarization.spectralon_factor
+        * (1.0 + s.flash.jitter) * (10.0 / b.aperture_f) ** 2 / e_per_dn(s.sensor, b.iso)
+        for b in rig.bands
+    )
+    return s.sensor.reference_fill * (s.sensor.white_level - max(s.sensor.black_level)) / brightest

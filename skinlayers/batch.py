@@ -287,6 +287,22 @@ def default_workers() -> int:
     return torch.cuda.device_count() if torch.cuda.is_available() else usable_cpus()
 
 
+#: Dask's nanny starts each worker with ``MALLOC_TRIM_THRESHOLD_=65536``, which fixes glibc's mmap threshold:
+#: every tensor temporary is then mapped and unmapped anew, and the fit runs about half as fast
+#: (docs/batch.md, "Workers started outside skinlayers"). Unset for our workers.
+WORKER_ENVIRON = {"MALLOC_TRIM_THRESHOLD_": None}
+
+
+def local_cluster(workers: int):
+    """A ``LocalCluster`` of ``workers`` processes, one task each at a time, without the nanny's malloc setting."""
+    import dask  # noqa: PLC0415
+    from distributed import LocalCluster  # noqa: PLC0415
+
+    with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in WORKER_ENVIRON.items()}):
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                            silence_logs=logging.ERROR)
+
+
 class _dask_client:
     """The client to run on: the caller's (left open), a scheduler's, or a fresh ``LocalCluster``'s."""
 
@@ -297,7 +313,7 @@ class _dask_client:
     def __enter__(self):
         if self.given is not None:
             return self.given
-        from distributed import Client, LocalCluster  # noqa: PLC0415
+        from distributed import Client  # noqa: PLC0415
 
         if self.scheduler is not None:
             try:
@@ -305,8 +321,7 @@ class _dask_client:
             except OSError as exc:
                 raise InputError(f"--scheduler {self.scheduler}: no Dask scheduler answers there ({exc})") from None
             return self.client
-        self.cluster = LocalCluster(n_workers=self.workers or default_workers(), threads_per_worker=1, processes=True,
-                                    dashboard_address=None, silence_logs=logging.ERROR)
+        self.cluster = local_cluster(self.workers or default_workers())
         self.client = Client(self.cluster)
         return self.client
 

@@ -14,6 +14,7 @@ import sys
 
 import typer
 
+from . import band_design
 from . import batch as batch_cli
 from . import demo as demo_cli
 from . import stability as stability_analysis
@@ -69,6 +70,7 @@ demo_cli.register(app)
 tradeoff_analysis.register(app)
 stability_analysis.register(app)
 batch_cli.register(app)
+band_design.register(app)
 
 
 def main() -> None:

@@ -47,9 +47,11 @@ def study(made_sessions, tmp_path) -> Path:
 
 @pytest.fixture
 def client():
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as c:
+    from skinlayers.batch import local_cluster
+
+    with local_cluster(2) as cluster, Client(cluster) as c:
         yield c
 
 
@@ -63,8 +65,10 @@ def _leftovers(study: Path) -> list[Path]:
     return [p for p in study.parent.rglob("*") if p.name.startswith((".staging-", ".skinlayers.lock", ".tmp-"))]
 
 
-def test_a_corrupt_session_fails_alone_and_only_it_is_retried(study, tmp_path, client):
-    from skinlayers.batch import BatchOptions, read_study, reconstruction_dir, run_batch, write_study
+def test_a_corrupt_session_fails_alone_and_only_it_is_retried(study, tmp_path, client, run_cli):
+    import json
+
+    from skinlayers.batch import BatchOptions, read_study, reconstruction_dir, run_batch
     from skinlayers.study import session_summary
 
     bad = _corrupt(study / "s2")
@@ -75,27 +79,30 @@ def test_a_corrupt_session_fails_alone_and_only_it_is_retried(study, tmp_path, c
     assert bad.name in first.outcomes["s2"].error and "\n" not in first.outcomes["s2"].error
     assert not (study / "s2_calibrated" / "calibration.json").exists()
     assert not (study / "s2_reconstruction").exists()
-    stamps = {n: (reconstruction_dir(s.path) / "fit.json").stat().st_mtime_ns for n, s in zip(("s1", "s3"), (sessions[0], sessions[2]))}
+    fits = [reconstruction_dir(s.path) / "fit.json" for s in (sessions[0], sessions[2])]
+    stamps = [f.stat().st_mtime_ns for f in fits]
 
-    second = run_batch(sessions, BatchOptions(), out, client=client)
-    assert [(o.status, o.ran) for o in second.outcomes.values()] == [("skipped", ()), ("failed", ()), ("skipped", ())]
-    assert stamps == {n: (reconstruction_dir(s.path) / "fit.json").stat().st_mtime_ns for n, s in zip(("s1", "s3"), (sessions[0], sessions[2]))}
+    code, stdout, err = run_cli("batch", str(study), "-o", str(out), "--workers", "2")  # the command, its own LocalCluster
+    assert code == 1 and "failed: s2: " in stdout and "1 failed" in stdout, stdout + err
+    ledger = json.loads((out / "batch.json").read_text())["sessions"]
+    assert [(ledger[n]["status"], ledger[n]["ran"]) for n in ("s1", "s2", "s3")] == [("skipped", []), ("failed", []), ("skipped", [])]
+    assert stamps == [f.stat().st_mtime_ns for f in fits]
     assert _leftovers(study) == []
 
-    paths = write_study(out, sessions, second.outcomes)
     rows = {r["session"]: r for r in csv.DictReader((out / "study.csv").open())}
     for s in (sessions[0], sessions[2]):  # the table equals the one computed session by session
         expected = session_summary(reconstruction_dir(s.path))
         assert {k: float(rows[s.name][k]) for k in expected} == pytest.approx(expected, rel=0, abs=0, nan_ok=True)
         assert rows[s.name]["subject"] == "demo" and rows[s.name]["status"] == "skipped"
     assert rows["s2"]["status"] == "failed" and rows["s2"]["C_m_trimmed_mean"] == ""
-    assert paths["maps"].stat().st_size > 0 and (out / "batch.json").is_file()
+    assert (out / "study_maps.png").stat().st_size > 0 and json.loads((out / "study.json").read_text())["reconstructed"] == 2
 
 
 def test_a_worker_killed_during_a_task_costs_no_session(study, tmp_path, client):
     from skinlayers.batch import BatchOptions, read_study, reconstruction_dir, run_batch
 
     sessions = read_study(study)
+    assert set(client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_")).values()) == {None}  # batch.WORKER_ENVIRON
     result: dict = {}
     runner = threading.Thread(target=lambda: result.update(r=run_batch(sessions, BatchOptions(), tmp_path / "out", client=client)))
     runner.start()

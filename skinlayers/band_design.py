@@ -1,0 +1,509 @@
+"""``skinlayers design-bands``: choose the rig's filters from a catalogue by the Cramér–Rao bound of the fit.
+
+DWRR08 §5 chose its filters "based on simulations using our skin model … an exhaustive search for filter
+combinations that provided an optimal signal-to-noise ratio with respect to the intrinsic model
+parameters". Here the same search, stated:
+
+- **What is photographed** (``Radiometry``): the simulator's own chain (``acquire/simulated.py``): the
+  flash (the simulation settings' blackbody; the simulator has no xenon spectrum, so no ragged
+  region near 420 nm), the filter (a Gaussian of the catalogue's FWHM, the simulator's quadrature), the
+  Spectralon and the polarizers' factors, the sensor's Bayer sensitivities, each band's ISO chosen as the
+  rig file's are (the largest that keeps the Spectralon within ``reference_fill`` of the range), shot
+  and read noise and the DN step, and the calibration's ratio of skin to Spectralon superpixels
+  (R + 2G + B), averaged over the superpixels of a cube pixel. The flash's power is the current rig's,
+  so every design is photographed with the same flash.
+- **What is fitted** (``band_jacobian``): the fit's band model, homogeneous skin per pixel
+  (``reconstruct/problem.py``: the multipole reflectance at each band's three nodes, weights 2/3, 1/6,
+  1/6, times the camera's exit factor), differentiated in log C_m, β_m, log C_he, log C_bc, log C_hd.
+- **The criterion** (``Criterion``): per skin of the prior, the Cramér–Rao bound of each map in the
+  fit's layout (``bound_variance``: C_m and C_he per pixel; C_hd, β_m and C_bc on their default grids,
+  each value shared by the pixels of its cell, ``shared_pixels``); per scored map (``MAP_TARGETS``: C_m,
+  C_he, C_hd relative, β_m absolute; C_bc has no target) its expected log(1 + variance/target²) over the
+  prior. ``rig`` (the default): the worst map's expected bound over the same for the rig's own bands —
+  below 1, every map improves on the rig (a minimax relative efficiency); ``targets``: the maps'
+  expected bounds summed (A-optimal, target-weighted). The heterogeneous renderer's cross-talk between
+  neighbouring pixels is not in the bound.
+- **The prior** (``prior_skins``): each row of DWRR08's Table 2, each chromophore spread as the demo
+  scene spreads it (log-normal, ``SPREAD``), ``PRIOR_SAMPLES`` skins a row, from a fixed seed.
+- **The search** (``search``): every combination where there are at most ``EXHAUSTIVE_LIMIT``; beyond,
+  Fedorov's exchange from ``EXCHANGE_STARTS`` random sets (swap a chosen filter for one not chosen while
+  the score falls).
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+import typer
+
+from .formats.errors import InputError
+
+__all__ = ["CATALOGUE_DEFAULT", "Filter", "Radiometry", "band_jacobian", "default_catalogue", "Criterion",
+           "exchange_search", "exhaustive_search", "filter_information", "prior_skins", "read_catalogue", "search"]
+
+#: The default catalogue: 10-nm filters every 10 nm over 400–720 nm (centre, FWHM in nm).
+CATALOGUE_DEFAULT = (400.0, 720.0, 10.0, 10.0)
+#: Parameters of the bound, in the fit's order: log C_m, β_m, log C_he, log C_bc, log C_hd.
+PARAMETERS = ("C_m", "beta_m", "C_he", "C_bc", "C_hd")
+#: The spread of each chromophore across the prior: log-normal σ (the demo scene's variation amplitudes).
+SPREAD = {"C_m": 0.25, "beta_m": 0.3, "C_he": 0.3, "C_bc": 0.3, "C_hd": 0.25}
+PRIOR_SAMPLES = 8
+PRIOR_SEED = 20
+#: Combinations above which the exchange algorithm replaces the exhaustive search.
+EXHAUSTIVE_LIMIT = 200_000
+EXCHANGE_STARTS = 12
+#: The fit's band quadrature (``reconstruct/problem.py``): offsets in σ of the band, weights.
+BAND_NODES = ((0.0, 2.0 / 3.0), (-math.sqrt(3.0), 1.0 / 6.0), (math.sqrt(3.0), 1.0 / 6.0))
+FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+
+
+@dataclass(frozen=True)
+class Filter:
+    """A catalogue's filter: its centre and full width at half maximum (nm)."""
+
+    centre_nm: float
+    fwhm_nm: float
+
+    def label(self) -> str:
+        return f"{self.centre_nm:g}/{self.fwhm_nm:g}"
+
+
+def default_catalogue() -> list[Filter]:
+    lo, hi, step, fwhm = CATALOGUE_DEFAULT
+    return [Filter(float(c), fwhm) for c in np.arange(lo, hi + step / 2, step)]
+
+
+def read_catalogue(path: str | Path) -> list[Filter]:
+    """Filters from a CSV with columns ``centre_nm`` and ``fwhm_nm`` (one filter a row, 380–800 nm)."""
+    path = Path(path)
+    try:
+        rows = list(csv.DictReader(path.read_text(encoding="utf-8-sig").splitlines()))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"{path}: not a readable filter catalogue ({exc})") from None
+    if not rows or not {"centre_nm", "fwhm_nm"} <= set(rows[0]):
+        raise InputError(f"{path}: a catalogue needs the columns centre_nm and fwhm_nm and a row per filter")
+    filters = []
+    for line, row in enumerate(rows, start=2):
+        try:
+            f = Filter(float(row["centre_nm"]), float(row["fwhm_nm"]))
+        except (TypeError, ValueError):
+            raise InputError(f"{path}, line {line}: centre_nm and fwhm_nm must be numbers") from None
+        if not (380.0 <= f.centre_nm <= 800.0 and 0.0 < f.fwhm_nm <= 100.0):
+            raise InputError(f"{path}, line {line}: centre {f.centre_nm:g} nm must lie in 380–800, FWHM in (0, 100]")
+        filters.append(f)
+    if len({f.centre_nm for f in filters}) != len(filters):
+        raise InputError(f"{path}: two filters share a centre")
+    return filters
+
+
+class Radiometry:
+    """The simulator's photograph of a band, reduced to what the bound needs: each filter's ISO and the
+    noise of the calibrated reflectance of a cube pixel (``reflectance_sd``)."""
+
+    def __init__(self, rig=None, simulation=None) -> None:
+        from .acquire._optics import band_spectrum  # noqa: PLC0415
+        from .acquire.rig import load_rig  # noqa: PLC0415
+        from .acquire.simulated import flash_power  # noqa: PLC0415
+        from .acquire.simulation_settings import load_simulation_settings  # noqa: PLC0415
+
+        self.rig = rig or load_rig()
+        self.settings = simulation if simulation is not None else load_simulation_settings(None)
+        s = self.settings
+        self._spectrum = lambda f: band_spectrum(f.centre_nm, f.fwhm_nm, s.filters.wavelength_samples, s.flash.temperature_k,
+                                                 s.sensor.sensitivity)
+        self.reference_signal = float(band_spectrum(550.0, 10.0, s.filters.wavelength_samples, s.flash.temperature_k,
+                                                    s.sensor.sensitivity).channel_signal[1])
+        spectra = {b.wavelength_nm: self._spectrum(Filter(b.wavelength_nm, b.fwhm_nm)) for b in self.rig.bands}
+        self.white_electrons = s.sensor.white_electrons or flash_power(s, self.rig, spectra, self.reference_signal)
+        g = self.rig.geometry
+        span = s.camera.window_span_px or 2 * g.rectify_px
+        #: Bayer superpixels averaged into one cube pixel (across the window; foreshortened along the view)
+        self.superpixels = (span / 2 / g.cube_px) ** 2 * math.cos(math.radians(self.rig.camera.angle_deg))
+
+    def electrons(self, f: Filter) -> np.ndarray:
+        """Mean electrons ``(3,)`` (R, G, B photosites) per unit reflectance at the image centre, f/10."""
+        return self.white_electrons * self._spectrum(f).channel_signal / self.reference_signal
+
+    def spectralon(self, f: Filter) -> float:
+        """The Spectralon's reflectance as photographed (its certified value × the polarizers' factor)."""
+        return self.rig.targets.spectralon_at(f.centre_nm) * self.rig.polarization.spectralon_factor
+
+    def iso(self, f: Filter) -> int:
+        """The largest ISO at which the Spectralon (the flash at its strongest) stays within ``reference_fill``
+        of the range, as the rig file's ISOs were chosen; the lowest when none does."""
+        s = self.settings.sensor
+        peak_e = float(self.electrons(f).max()) * self.spectralon(f) * (1.0 + self.settings.flash.jitter)
+        limit = s.reference_fill * (s.white_level - max(s.black_level))
+        fitting = [iso for iso in s.iso_values if peak_e / self._gain(iso) <= limit]
+        return max(fitting) if fitting else min(s.iso_values)
+
+    def reflectance_sd(self, f: Filter, reflectance: torch.Tensor, iso: int | None = None) -> torch.Tensor:
+        """The noise (standard deviation) of a cube pixel's calibrated reflectance at ``reflectance`` (any
+        shape): skin over Spectralon superpixels (R + 2G + B) less the black frame, each photosite's
+        variance (μ_e + σ_e²)/g² + σ_DN² + 1/12 in DN², averaged over ``superpixels``."""
+        s = self.settings.sensor
+        g = self._gain(iso or self.iso(f))
+        e = torch.as_tensor(self.electrons(f), dtype=reflectance.dtype) * torch.tensor([1.0, 2.0, 1.0], dtype=reflectance.dtype)
+        floor = 4 * ((s.read_noise_e / g) ** 2 + s.read_noise_dn**2 + 1.0 / 12.0)  # a superpixel's read noise and DN step
+
+        def mean_var(rho):
+            mu_e = float(e.sum()) * rho * self.rig.polarization.skin_factor
+            return mu_e / g, mu_e / g**2 + floor
+
+        skin_dn, skin_var = mean_var(reflectance)
+        ref_dn, ref_var = mean_var(torch.as_tensor(self.spectralon(f) / self.rig.polarization.skin_factor, dtype=reflectance.dtype))
+        relative = (skin_var + floor) / skin_dn**2 + (ref_var + floor) / ref_dn**2
+        return reflectance * torch.sqrt(relative / self.superpixels)
+
+    def _gain(self, iso: int) -> float:
+        """Electrons per DN at ``iso``."""
+        return self.settings.sensor.e_per_dn_iso100 * 100.0 / iso
+
+
+def prior_skins(samples: int = PRIOR_SAMPLES, seed: int = PRIOR_SEED) -> torch.Tensor:
+    """The prior ``(rows × samples, 5)`` float64 in ``PARAMETERS`` order: each Table 2 row, each chromophore
+    multiplied by exp(σ·z) (β_m: its logit moved by σ·z), z standard normal from ``seed``."""
+    from .model import TABLE2  # noqa: PLC0415
+
+    generator = torch.Generator().manual_seed(seed)
+    out = []
+    for row in TABLE2.values():
+        base = torch.tensor([max(row[n], 1e-6) for n in PARAMETERS], dtype=torch.float64)
+        z = torch.randn(samples, len(PARAMETERS), generator=generator, dtype=torch.float64)
+        spread = torch.tensor([SPREAD[n] for n in PARAMETERS], dtype=torch.float64)
+        skins = base * torch.exp(spread * z)
+        beta = base[1].clamp(1e-3, 1 - 1e-3)
+        skins[:, 1] = torch.sigmoid(torch.logit(beta) + spread[1] * z[:, 1])
+        out.append(skins)
+    return torch.cat(out)
+
+
+def band_jacobian(skins: torch.Tensor, filters: Sequence[Filter]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The fit's band reflectance ``(M, F)`` of each skin ``(M, 5)`` through each filter, and its derivative
+    ``(M, F, 5)`` in log C_m, β_m, log C_he, log C_bc, log C_hd (``reconstruct/problem.py``'s band model)."""
+    from .model import SkinModel  # noqa: PLC0415
+    from .model.params import SkinParams  # noqa: PLC0415
+    from .model.radiometry import exit_factor  # noqa: PLC0415
+    from .model.settings import ModelSettings  # noqa: PLC0415
+
+    model = SkinModel(ModelSettings())
+    o = model.settings.optics
+    exit = exit_factor(o.n_epidermis, o.n_above, math.cos(math.radians(30.0)))
+    centres = torch.tensor([f.centre_nm for f in filters], dtype=torch.float64)
+    sigmas = torch.tensor([f.fwhm_nm * FWHM_TO_SIGMA for f in filters], dtype=torch.float64)
+    nodes = torch.stack([centres + k * sigmas for k, _ in BAND_NODES], dim=1)  # (F, 3)
+    weights = torch.tensor([w for _, w in BAND_NODES], dtype=torch.float64)
+    u = _to_u(skins).requires_grad_(True)
+    reflectance = model.diffuse_reflectance(SkinParams.from_tensor(_from_u(u)), nodes.reshape(-1)).reshape(len(skins), len(filters), 3)
+    band = exit * (reflectance * weights).sum(-1)  # (M, F)
+    jac = torch.stack([torch.autograd.grad(band[:, j].sum(), u, retain_graph=True)[0] for j in range(len(filters))], dim=1)
+    return band.detach(), jac
+
+
+def _to_u(p: torch.Tensor) -> torch.Tensor:
+    u = p.clone().log()
+    u[:, 1] = p[:, 1]
+    return u
+
+
+def _from_u(u: torch.Tensor) -> torch.Tensor:
+    p = u.exp()
+    return torch.cat([p[:, :1], u[:, 1:2], p[:, 2:]], dim=1)
+
+
+def filter_information(radiometry: Radiometry, skins: torch.Tensor, filters: Sequence[Filter]) -> torch.Tensor:
+    """Each filter's Fisher information on each skin, ``(F, M, 5, 5)``: J Jᵀ / σ², σ the calibrated
+    reflectance's noise at that skin's band reflectance."""
+    band, jac = band_jacobian(skins, filters)
+    sd = torch.stack([radiometry.reflectance_sd(f, band[:, j]) for j, f in enumerate(filters)], dim=1)  # (M, F)
+    weighted = jac / sd[..., None]
+    return torch.einsum("mfi,mfj->fmij", weighted, weighted)
+
+
+def shared_pixels(rig=None, cells_mm: dict[str, float] | None = None) -> torch.Tensor:
+    """Pixels of the rig's cube that share one value of each parameter ``(5,)`` in the fit's layout
+    (``DEFAULT_MAP_CELL_MM``: a node's cell², the whole window at most; 1 per pixel)."""
+    from .acquire.rig import load_rig  # noqa: PLC0415
+    from .reconstruct.settings import DEFAULT_MAP_CELL_MM  # noqa: PLC0415
+
+    g = (rig or load_rig()).geometry
+    px_mm = g.window_mm / g.cube_px
+    cells = cells_mm or DEFAULT_MAP_CELL_MM
+    return torch.tensor([max(1.0, (min(cells[n], g.window_mm) / px_mm) ** 2) for n in PARAMETERS], dtype=torch.float64)
+
+
+def bound_variance(fisher: torch.Tensor, shared: torch.Tensor) -> torch.Tensor:
+    """The Cramér–Rao variances ``(..., 5)`` of a pixel's parameters from one pixel's Fisher information
+    ``(..., 5, 5)``, the parameters with ``shared`` > 1 estimated from that many pixels of the same skin.
+
+    Per-pixel parameters p, shared s: the shared ones' information is the Schur complement
+    S = F_ss − F_sp F_pp⁻¹ F_ps gathered over their pixels, S_kl × min(n_k, n_l) (exact for one shared
+    count; for nested cells, the pixels two parameters have in common); a pixel's p then carries
+    F_pp⁻¹ + F_pp⁻¹ F_ps Var(s) F_sp F_pp⁻¹ (its own share of the shared ones neglected)."""
+    eye = 1e-12 * torch.eye(fisher.shape[-1], dtype=fisher.dtype)
+    fisher = fisher + eye
+    p = (shared <= 1).nonzero().flatten()
+    s = (shared > 1).nonzero().flatten()
+    f_pp, f_ps, f_ss = fisher[..., p[:, None], p], fisher[..., p[:, None], s], fisher[..., s[:, None], s]
+    inv_pp = torch.linalg.inv(f_pp)
+    schur = f_ss - f_ps.transpose(-1, -2) @ inv_pp @ f_ps
+    counts = shared[s]
+    var_s = torch.linalg.inv(schur * torch.minimum(counts[:, None], counts[None, :]))
+    var_p = inv_pp + inv_pp @ f_ps @ var_s @ f_ps.transpose(-1, -2) @ inv_pp
+    out = torch.empty(fisher.shape[:-1], dtype=fisher.dtype)
+    out[..., p] = var_p.diagonal(dim1=-2, dim2=-1)
+    out[..., s] = var_s.diagonal(dim1=-2, dim2=-1)
+    return out
+
+
+#: The criteria (``Criterion``), in the words ``design.json`` and the chart use.
+CRITERION_WORDS = {
+    "rig": "the worst map's expected bound (mean over the prior of log(1 + CRB/target²); C_m, β_m, C_he, C_hd in the "
+           "fit's layout) over the same for the rig's own bands: below 1, every map improves on the rig",
+    "targets": "A-optimal: the maps' expected bounds (mean over the prior of log(1 + CRB/target²); C_m, β_m, C_he, C_hd "
+               "in the fit's layout) summed",
+}
+CRITERIA = tuple(CRITERION_WORDS)
+
+
+class Criterion:
+    """A set of filters' score, lower is better. Each scored map's (``MAP_TARGETS``: C_m, β_m, C_he, C_hd;
+    C_bc has none) expected bound is the mean over the prior of log(1 + variance/target²): the variance
+    over the target squared where it is small, and a skin on which a map cannot be determined (C_m of
+    the palest Table 2 row, 0.013%) counts as one bad skin, not as the whole prior."""
+
+    def __init__(self, information: torch.Tensor, shared: torch.Tensor, kind: str = "rig", reference: Sequence[int] | None = None,
+                 candidates: int | None = None):
+        from .reconstruct.checks import MAP_TARGETS  # noqa: PLC0415
+
+        if kind not in CRITERIA or (kind == "rig" and reference is None):
+            raise ValueError(f"criterion {kind!r}: one of {CRITERIA}; 'rig' needs the reference set")
+        self.information, self.shared, self.kind = information, shared, kind
+        #: the filters a search may choose: the first ``candidates`` (the catalogue; comparison sets after it)
+        self.candidates = candidates or information.shape[0]
+        self.maps = [PARAMETERS.index(n) for n in MAP_TARGETS]
+        self.targets = torch.tensor(list(MAP_TARGETS.values()), dtype=information.dtype)
+        self.reference = self.expected(reference)[0] if reference is not None else None
+
+    def expected(self, chosen) -> torch.Tensor:
+        """Each scored map's expected bound ``(B, maps)`` of sets ``(n,)`` or ``(B, n)``."""
+        index = torch.as_tensor(chosen, dtype=torch.long)
+        batch = index.reshape(-1, index.shape[-1])
+        variance = bound_variance(self.information[batch].sum(dim=1), self.shared)  # (B, M, 5)
+        return torch.log1p(variance[..., self.maps] / self.targets**2).mean(dim=1)
+
+    def __call__(self, chosen) -> torch.Tensor:
+        """The scores ``(B,)`` (a scalar for one set)."""
+        expected = self.expected(chosen)
+        score = (expected / self.reference).max(-1).values if self.kind == "rig" else expected.sum(-1)
+        return score.reshape(torch.as_tensor(chosen).shape[:-1])
+
+
+def crb_per_parameter(information: torch.Tensor, chosen: Sequence[int], shared: torch.Tensor) -> dict[str, float]:
+    """The bound's median σ per parameter over the prior (relative for the chromophores: σ of log C)."""
+    variance = bound_variance(information[torch.as_tensor(list(chosen))].sum(0), shared)
+    return {n: float(variance[:, i].clamp_min(0).sqrt().median()) for i, n in enumerate(PARAMETERS)}
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """The best set found (indices, ascending), its score, how it was found and in what time."""
+
+    chosen: tuple[int, ...]
+    score: float
+    method: str
+    evaluated: int
+    seconds: float
+
+
+def exhaustive_search(criterion: Criterion, count: int, batch: int = 4096) -> SearchResult:
+    """Every combination of ``count`` filters, scored in batches; the best."""
+    start = time.perf_counter()
+    best, best_score, evaluated = None, math.inf, 0
+    combos = itertools.combinations(range(criterion.candidates), count)
+    while chunk := list(itertools.islice(combos, batch)):
+        scores = criterion(torch.tensor(chunk))
+        i = int(torch.argmin(scores))
+        evaluated += len(chunk)
+        if float(scores[i]) < best_score:
+            best, best_score = chunk[i], float(scores[i])
+    return SearchResult(tuple(best), best_score, "exhaustive", evaluated, time.perf_counter() - start)
+
+
+def exchange_search(criterion: Criterion, count: int, starts: int = EXCHANGE_STARTS, seed: int = 0) -> SearchResult:
+    """Fedorov's exchange: from each random start, the best single swap (a chosen filter for one not
+    chosen) while it lowers the score; the best end point of all starts."""
+    start_time = time.perf_counter()
+    generator = torch.Generator().manual_seed(seed)
+    size = criterion.candidates
+    best, best_score, evaluated = None, math.inf, 0
+    for _ in range(starts):
+        chosen = sorted(torch.randperm(size, generator=generator)[:count].tolist())
+        score = float(criterion(chosen))
+        while True:
+            swaps = [sorted([*chosen[:i], c, *chosen[i + 1:]]) for i in range(count) for c in range(size) if c not in chosen]
+            scores = criterion(torch.tensor(swaps))
+            evaluated += len(swaps)
+            i = int(torch.argmin(scores))
+            if float(scores[i]) >= score * (1 - 1e-12):
+                break
+            chosen, score = swaps[i], float(scores[i])
+        if score < best_score:
+            best, best_score = chosen, score
+    return SearchResult(tuple(best), best_score, "exchange", evaluated, time.perf_counter() - start_time)
+
+
+def search(criterion: Criterion, count: int) -> SearchResult:
+    """Exhaustive where the combinations are at most ``EXHAUSTIVE_LIMIT``, else the exchange algorithm."""
+    size = criterion.candidates
+    if not 1 <= count <= size:
+        raise InputError(f"--count {count}: choose between 1 and the catalogue's {size} filters")
+    if math.comb(size, count) <= EXHAUSTIVE_LIMIT:
+        return exhaustive_search(criterion, count)
+    return exchange_search(criterion, count)
+
+
+#: Counts the chart of the bound against N spans: one band per parameter and the scale, to a full wheel.
+CHART_COUNTS = range(6, 12)
+#: Evenly spaced comparison: the catalogue's span in ``count`` equal steps.
+COMPARISONS = ("chosen", "current rig", "evenly spaced")
+
+
+@dataclass
+class BandDesign:
+    """What ``design-bands`` found: the chosen filters and their ISOs, the search, the bound of each
+    compared set per parameter, and the best score at each count of the chart."""
+
+    chosen: list[Filter]
+    isos: list[int]
+    criterion: str
+    search: SearchResult
+    bounds: dict[str, dict[str, float]]
+    scores: dict[str, float]
+    by_count: dict[int, float]
+    seconds: float
+
+
+def design_bands(catalogue: Sequence[Filter], count: int, rig=None, kind: str = "rig") -> BandDesign:
+    """Search the catalogue for ``count`` filters by the criterion ``kind`` (the module docstring), compare
+    with the rig's own bands and evenly spaced ones, and chart the best score against the count."""
+    start = time.perf_counter()
+    radiometry = Radiometry(rig)
+    lo, hi = min(f.centre_nm for f in catalogue), max(f.centre_nm for f in catalogue)
+    compared = {"current rig": [Filter(b.wavelength_nm, b.fwhm_nm) for b in radiometry.rig.bands],
+                "evenly spaced": [Filter(float(c), catalogue[0].fwhm_nm) for c in np.linspace(lo, hi, count)]}
+    every = [*catalogue, *compared["current rig"], *compared["evenly spaced"]]
+    information = filter_information(radiometry, prior_skins(), every)
+    shared = shared_pixels(radiometry.rig)
+    n, r = len(catalogue), len(compared["current rig"])
+    sets = {"current rig": list(range(n, n + r)), "evenly spaced": list(range(n + r, len(every)))}
+    criterion = Criterion(information, shared, kind, sets["current rig"], candidates=n)
+    found = search(criterion, count)
+    sets = {"chosen": list(found.chosen), **sets}
+    bounds = {name: crb_per_parameter(information, chosen, shared) for name, chosen in sets.items()}
+    scores = {name: float(criterion(chosen)) for name, chosen in sets.items()}
+    by_count = {k: search(criterion, k).score for k in CHART_COUNTS if k <= n}
+    chosen = [catalogue[i] for i in found.chosen]
+    return BandDesign(chosen, [radiometry.iso(f) for f in chosen], kind, found, bounds, scores, by_count, time.perf_counter() - start)
+
+
+def write_design(design: BandDesign, out: Path, rig=None) -> dict[str, Path]:
+    """``design.json``, ``rig.yaml`` (the rig with the chosen bands and their ISOs) and
+    ``bound_vs_count.png`` in ``out``; their paths by kind."""
+    import json  # noqa: PLC0415
+
+    import yaml  # noqa: PLC0415
+
+    from .acquire.rig import load_rig  # noqa: PLC0415
+    from .formats.files import atomic_write  # noqa: PLC0415
+
+    out.mkdir(parents=True, exist_ok=True)
+    rig = rig or load_rig()
+    positions = [p for p in range(1, rig.wheel.position_count + 1) if p != rig.wheel.dark_position]
+    bands = [{"wavelength_nm": f.centre_nm, "fwhm_nm": f.fwhm_nm, "filter_position": position, "iso": iso, "shutter_s": 0.01,
+              "aperture_f": 10.0} for f, iso, position in zip(design.chosen, design.isos, positions)]
+    rig_text = yaml.safe_dump({**rig.model_dump(mode="json"), "bands": bands}, sort_keys=False)
+    record = {
+        "criterion": {"kind": design.criterion, "meaning": CRITERION_WORDS[design.criterion]},
+        "chosen": [{"centre_nm": f.centre_nm, "fwhm_nm": f.fwhm_nm, "iso": iso} for f, iso in zip(design.chosen, design.isos)],
+        "search": {"method": design.search.method, "sets_scored": design.search.evaluated, "seconds": round(design.search.seconds, 2)},
+        "score": design.scores, "crb_median_sd": design.bounds,
+        "best_score_by_count": {str(n): s for n, s in design.by_count.items()}, "seconds": round(design.seconds, 1),
+    }
+    paths = {"record": atomic_write(out / "design.json", (json.dumps(record, indent=1) + "\n").encode()),
+             "rig": atomic_write(out / "rig.yaml", ("# skinlayers design-bands: the rig with the chosen bands\n" + rig_text).encode())}
+    paths["chart"] = _chart(design, out / "bound_vs_count.png")
+    return paths
+
+
+def _chart(design: BandDesign, path: Path) -> Path:
+    import io  # noqa: PLC0415
+
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    from .formats.files import atomic_write  # noqa: PLC0415
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    counts = list(design.by_count)
+    ax.plot(counts, [design.by_count[n] for n in counts], "o-", label="best set of N from the catalogue")
+    n = len(design.chosen)
+    for name, marker in (("current rig", "s"), ("evenly spaced", "^")):
+        ax.plot([n], [design.scores[name]], marker, label=f"{name} ({n} bands)")
+    ax.set_xlabel("bands (N)")
+    ax.set_ylabel("worst map's bound / the rig's" if design.criterion == "rig" else "Σ maps' expected log(1 + CRB/target²)")
+    ax.set_title("Cramér–Rao bound of the fit against the number of filters")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    plt.close(fig)
+    return atomic_write(path, buffer.getvalue())
+
+
+def design_bands_cli(
+    catalog: Optional[Path] = typer.Option(None, "--catalog", help="CSV of filters (centre_nm, fwhm_nm); default: 10-nm "
+                                                                   "filters every 10 nm over 400–720 nm."),
+    count: int = typer.Option(9, "--count", help="Filters to choose."),
+    rig_path: Optional[Path] = typer.Option(None, "--rig", help="Rig YAML (its flash, camera, exposures' rule, wheel)."),
+    criterion: str = typer.Option("rig", "--criterion", help="rig: improve every map most on the rig's own bands; "
+                                                             "targets: A-optimal, each map over its target."),
+    out: Path = typer.Option(Path("design-bands"), "-o", "--out", help="Folder for design.json, rig.yaml and the chart."),
+) -> None:
+    """Choose the rig's filters from a catalogue by the Cramér–Rao bound of the fit (DWRR08 §5).
+
+    Example: skinlayers design-bands                 (9 of the default catalogue: 10-nm filters, 400–720 nm)
+             skinlayers design-bands --catalog my_filters.csv --count 8 -o my_design
+    """
+    from .acquire.rig import load_rig  # noqa: PLC0415
+
+    if criterion not in CRITERIA:
+        raise InputError(f"--criterion {criterion!r}: choose one of {', '.join(CRITERIA)}")
+    catalogue = read_catalogue(catalog) if catalog is not None else default_catalogue()
+    rig = load_rig(rig_path)
+    if not 1 <= count <= rig.wheel.position_count - 1:
+        raise InputError(f"--count {count}: choose 1 to {rig.wheel.position_count - 1}, the filters the wheel holds beside its dark slot")
+    design = design_bands(catalogue, count, rig, criterion)
+    paths = write_design(design, out, rig)
+    typer.echo("chosen: " + ", ".join(f"{f.centre_nm:g} nm (ISO {iso})" for f, iso in zip(design.chosen, design.isos)))
+    typer.echo(f"search: {design.search.method}, {design.search.evaluated} sets in {design.search.seconds:.1f} s; "
+               f"all of it {design.seconds:.0f} s")
+    for name in COMPARISONS:
+        sd = ", ".join(f"{k} {100 * v:.1f}%" for k, v in design.bounds[name].items())
+        typer.echo(f"{name:>14}: score {design.scores[name]:.3g}; median σ {sd}")
+    for kind, path in paths.items():
+        typer.echo(f"{kind}: {path}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("design-bands")(design_bands_cli)

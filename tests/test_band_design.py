@@ -1,0 +1,143 @@
+"""``skinlayers design-bands``: the radiometry against the simulator's measured noise, the fit's band
+Jacobian against finite differences, and the search on constructed cases whose optimum is known."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+#: RMS of (calibrated cube − truth) per band of the default rig (430–670 nm every 30 nm), measured on the
+#: default simulated 256² session (tests/bench/test_bench_identifiability.py, CAMERA_NOISE): a truth the
+#: design's noise model did not make (the simulator's photons through the calibration).
+MEASURED_NOISE = (0.0043, 0.0034, 0.0033, 0.0031, 0.0032, 0.0036, 0.0049, 0.0078, 0.0155)
+III_INTERIOR = (0.005364, 0.151566, 0.001441, 0.000081, 0.004674)  # C_m, β_m, C_he, C_bc, C_hd (DWRR08 Table 2)
+
+
+def test_the_radiometry_chooses_the_rigs_isos_and_predicts_its_noise():
+    from skinlayers.acquire.rig import load_rig
+    from skinlayers.band_design import Filter, Radiometry, band_jacobian
+
+    rig, radiometry = load_rig(), Radiometry()
+    filters = [Filter(b.wavelength_nm, b.fwhm_nm) for b in rig.bands]
+    assert [radiometry.iso(f) for f in filters] == [b.iso for b in rig.bands]  # the rig file's rule, reproduced
+    band, _ = band_jacobian(torch.tensor([III_INTERIOR], dtype=torch.float64), filters)
+    predicted = [float(radiometry.reflectance_sd(f, band[0, j])) for j, f in enumerate(filters)]
+    ratios = [p / m for p, m in zip(predicted, MEASURED_NOISE)]
+    assert all(0.8 <= r <= 1.2 for r in ratios), ratios
+
+
+def test_the_band_jacobian_is_the_derivative_of_the_band_reflectance():
+    from skinlayers.band_design import Filter, band_jacobian
+
+    filters = [Filter(450.0, 10.0), Filter(560.0, 20.0), Filter(690.0, 10.0)]
+    skins = torch.tensor([III_INTERIOR, (0.03, 0.6, 0.003, 0.0004, 0.01)], dtype=torch.float64)
+    band, jac = band_jacobian(skins, filters)
+    h = 1e-6
+    for k in range(5):
+        step = torch.zeros(5, dtype=torch.float64)
+        step[k] = h
+        up, down = skins.clone(), skins.clone()
+        if k == 1:  # β_m absolute; the others in log
+            up[:, 1] += h
+            down[:, 1] -= h
+        else:
+            up[:, k] *= math.exp(h)
+            down[:, k] *= math.exp(-h)
+        numeric = (band_jacobian(up, filters)[0] - band_jacobian(down, filters)[0]) / (2 * h)
+        assert torch.allclose(jac[..., k], numeric, rtol=1e-5, atol=1e-9), k
+
+
+def _constructed_information() -> torch.Tensor:
+    """Seven filters on one skin, every map per pixel: filters 1, 2, 3 and 4 each inform one scored map
+    (C_m, β_m, C_he, C_hd) strongly; filters 0, 5 and 6 inform them all along one direction."""
+    info = torch.zeros(7, 1, 5, 5, dtype=torch.float64)
+    for f, k in ((1, 0), (2, 1), (3, 2), (4, 4)):
+        info[f, 0, k, k] = 100.0
+    for f in (0, 5, 6):
+        v = torch.tensor([1.0, 1.0, 1.0, 0.0, 1.0], dtype=torch.float64)
+        info[f, 0] = 60.0 * torch.outer(v, v)
+    info[:, 0] += 1e-2 * torch.eye(5, dtype=torch.float64)
+    return info
+
+
+def test_the_search_finds_the_known_optimum():
+    from skinlayers.band_design import Criterion, exchange_search, exhaustive_search
+
+    info, per_pixel = _constructed_information(), torch.ones(5, dtype=torch.float64)
+    for criterion in (Criterion(info, per_pixel, "targets"), Criterion(info, per_pixel, "rig", reference=[0, 5, 6])):
+        assert exhaustive_search(criterion, 4).chosen == (1, 2, 3, 4)
+        assert exchange_search(criterion, 4, starts=3).chosen == (1, 2, 3, 4)
+
+
+def test_the_exchange_agrees_with_the_exhaustive_search_on_random_catalogues():
+    from skinlayers.band_design import Criterion, exchange_search, exhaustive_search
+
+    generator = torch.Generator().manual_seed(3)
+    shared = torch.tensor([1.0, 50.0, 1.0, 400.0, 8.0], dtype=torch.float64)
+    for _ in range(3):
+        vectors = torch.randn(10, 4, 5, 2, generator=generator, dtype=torch.float64)
+        info = vectors @ vectors.transpose(-1, -2) + 1e-3 * torch.eye(5, dtype=torch.float64)
+        criterion = Criterion(info, shared, "rig", reference=[0, 1, 2, 3])
+        exact = exhaustive_search(criterion, 4)
+        found = exchange_search(criterion, 4)
+        assert found.chosen == exact.chosen and found.score == pytest.approx(exact.score)
+
+
+def test_the_shared_bound_is_the_inverse_of_the_whole_fisher_matrix():
+    """n pixels of one skin, β_m, C_bc and C_hd shared by all: the variances equal the diagonal of the
+    inverse of the n-pixel information matrix, built explicitly."""
+    from skinlayers.band_design import bound_variance
+
+    n = 6
+    generator = torch.Generator().manual_seed(1)
+    j = torch.randn(9, 5, generator=generator, dtype=torch.float64)
+    fisher = j.T @ j
+    per, shr = [0, 2], [1, 3, 4]
+    whole = torch.zeros(2 * n + 3, 2 * n + 3, dtype=torch.float64)
+    for i in range(n):
+        a = slice(2 * i, 2 * i + 2)
+        whole[a, a] = fisher[per][:, per]
+        whole[a, 2 * n:] = fisher[per][:, shr]
+        whole[2 * n:, a] = fisher[shr][:, per]
+        whole[2 * n:, 2 * n:] += fisher[shr][:, shr]
+    exact = torch.linalg.inv(whole).diagonal()
+    shared = torch.tensor([1.0, n, 1.0, n, n], dtype=torch.float64)
+    variance = bound_variance(fisher, shared)
+    assert torch.allclose(variance[per], exact[:2], rtol=1e-9) and torch.allclose(variance[shr], exact[2 * n:], rtol=1e-9)
+
+
+@pytest.mark.parametrize("text, words", [
+    ("centre,fwhm\n450,10\n", "centre_nm and fwhm_nm"),
+    ("centre_nm,fwhm_nm\n450,ten\n", "line 2"),
+    ("centre_nm,fwhm_nm\n900,10\n", "380–800"),
+    ("centre_nm,fwhm_nm\n450,10\n450,20\n", "share a centre"),
+])
+def test_a_bad_catalogue_is_refused_naming_the_line(tmp_path, text, words):
+    from skinlayers.band_design import read_catalogue
+    from skinlayers.formats.errors import InputError
+
+    path = tmp_path / "filters.csv"
+    path.write_text(text)
+    with pytest.raises(InputError, match=words):
+        read_catalogue(path)
+
+
+def test_the_command_writes_a_rig_that_loads(tmp_path, run_cli):
+    import json
+
+    from skinlayers.acquire.rig import load_rig
+
+    catalogue = tmp_path / "filters.csv"
+    catalogue.write_text("centre_nm,fwhm_nm\n" + "".join(f"{c},10\n" for c in range(420, 660, 20)))  # 12 filters
+    code, out, err = run_cli("design-bands", "--catalog", str(catalogue), "--count", "6", "-o", str(tmp_path / "d"))
+    assert code == 0, err
+    record = json.loads((tmp_path / "d" / "design.json").read_text())
+    assert record["search"]["method"] == "exhaustive" and record["search"]["sets_scored"] == 924  # 12 choose 6
+    assert len(record["chosen"]) == 6 and set(record["crb_median_sd"]) == {"chosen", "current rig", "evenly spaced"}
+    rig = load_rig(tmp_path / "d" / "rig.yaml")
+    assert [b.wavelength_nm for b in rig.bands] == [f["centre_nm"] for f in record["chosen"]]
+    assert [b.iso for b in rig.bands] == [f["iso"] for f in record["chosen"]] and (tmp_path / "d" / "bound_vs_count.png").is_file()
+    code, _, err = run_cli("design-bands", "--count", "12", "-o", str(tmp_path / "e"))
+    assert code == 1 and "--count 12" in err
