@@ -122,7 +122,7 @@ class Radiometry:
         self.reference_signal = float(band_spectrum(550.0, 10.0, s.filters.wavelength_samples, s.flash.temperature_k,
                                                     s.sensor.sensitivity).channel_signal[1])
         spectra = {b.wavelength_nm: self._spectrum(Filter(b.wavelength_nm, b.fwhm_nm)) for b in self.rig.bands}
-        self.white_electrons = s.sensor.white_electrons or flash_power(s, self.rig, spectra, self.reference_signal)
+        self.white_electrons = float(s.sensor.white_electrons or flash_power(s, self.rig, spectra, self.reference_signal))
         g = self.rig.geometry
         span = s.camera.window_span_px or 2 * g.rectify_px
         #: Bayer superpixels averaged into one cube pixel (across the window; foreshortened along the view)

@@ -9,7 +9,7 @@ import csv
 import os
 from pathlib import Path
 
-__all__ = ["out_dir", "write_csv"]
+__all__ = ["append_rows", "done_keys", "out_dir", "write_csv"]
 
 
 def out_dir() -> Path:
@@ -32,3 +32,25 @@ def write_csv(name: str, rows: list[dict], context: str = "") -> Path:
     for row in rows:
         print("  " + ", ".join(f"{k}={v}" for k, v in row.items()))
     return path
+
+
+def append_rows(path: Path, fields: list[str], rows: list[dict]) -> None:
+    """Append ``rows`` to the CSV at ``path`` (its header first when new) and print them: a benchmark that
+    writes row by row can be stopped and resumed."""
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        if new:
+            writer.writeheader()
+        writer.writerows(rows)
+    for row in rows:
+        print("  " + ", ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+
+
+def done_keys(path: Path, key: tuple[str, ...]) -> set[tuple[str, ...]]:
+    """The ``key`` columns' values of every row already in the CSV at ``path`` (empty when there is none)."""
+    if not path.exists():
+        return set()
+    with path.open() as f:
+        return {tuple(r[k] for k in key) for r in csv.DictReader(f)}
+

@@ -12,25 +12,17 @@ as they are measured (a rerun skips those there).
 
 from __future__ import annotations
 
-import csv
 import os
 from pathlib import Path
 
 import pytest
 import yaml
-from bench_io import out_dir
+from bench_io import append_rows, done_keys, out_dir
 
 pytestmark = pytest.mark.bench
 
 FIELDS = ["rig", "bands_nm", "seed", "C_m", "beta_m", "C_he", "C_bc", "C_hd", "residual_rms"]
 SIZE = 64
-
-
-def _done(path: Path) -> set[tuple[str, str]]:
-    if not path.exists():
-        return set()
-    with path.open() as f:
-        return {(r["rig"], r["seed"]) for r in csv.DictReader(f)}
 
 
 def _session_errors(folder: Path, rig_path: Path | None, simulation: Path, seed: int) -> dict:
@@ -60,21 +52,16 @@ def test_chosen_bands_against_the_rigs_through_the_pipeline(tmp_path):
     design = design_bands(default_catalogue(), 9)
     paths = write_design(design, base / "design")
     settings = load_simulation_settings(None).model_dump(mode="json")
-    settings["sensor"]["white_electrons"] = Radiometry().white_electrons  # the current rig's flash for both
+    settings["sensor"]["white_electrons"] = float(Radiometry().white_electrons)  # the current rig's flash for both
     simulation = base / "simulation.yaml"
     simulation.write_text(yaml.safe_dump(settings, sort_keys=False))
-    table, done = out_dir() / "band_design.csv", _done(out_dir() / "band_design.csv")
+    table = out_dir() / "band_design.csv"
+    done = done_keys(table, ("rig", "seed"))
     seeds = [int(s) for s in os.environ.get("SKINLAYERS_BENCH_DESIGN_SEEDS", "101,102").split(",")]
     for seed in seeds:
         for name, rig_path in (("current", None), ("chosen", paths["rig"])):
             if (name, str(seed)) in done:
                 continue
             row = {"rig": name, "seed": seed, **_session_errors(tmp_path / f"{name}-{seed}", rig_path, simulation, seed)}
-            new = not table.exists()
-            with table.open("a", newline="") as f:
-                writer = csv.DictWriter(f, fieldnames=FIELDS)
-                if new:
-                    writer.writeheader()
-                writer.writerow(row)
-            print("  " + ", ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+            append_rows(table, FIELDS, [row])
     assert load_rig(paths["rig"]).bands  # the written rig loads

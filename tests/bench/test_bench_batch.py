@@ -20,7 +20,6 @@ that once a worker, not once a task. Rows are appended to ``batch.csv`` as they 
 
 from __future__ import annotations
 
-import csv
 import os
 import shutil
 import statistics
@@ -28,7 +27,7 @@ import time
 from pathlib import Path
 
 import pytest
-from bench_io import out_dir
+from bench_io import append_rows, out_dir
 
 pytestmark = pytest.mark.bench
 
@@ -108,16 +107,4 @@ def test_batch_throughput_against_workers():
     for row in rows:
         if "dask_overhead_per_task_s" in row and row["mode"] == "dask":
             row["overhead_share"] = round(row["dask_overhead_per_task_s"] / loop_task_s, 4)
-    _write(rows)
-
-
-def _write(rows: list[dict]) -> None:
-    path = out_dir() / "batch.csv"
-    new = not path.exists()
-    with path.open("a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        if new:
-            writer.writeheader()
-        writer.writerows(rows)
-    for row in rows:
-        print("  " + ", ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+    append_rows(out_dir() / "batch.csv", FIELDS, rows)

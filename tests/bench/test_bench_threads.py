@@ -14,7 +14,6 @@ the table cache.
 
 from __future__ import annotations
 
-import csv
 import os
 import subprocess
 import sys
@@ -22,7 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
-from bench_io import out_dir
+from bench_io import append_rows, done_keys, out_dir
 
 pytestmark = pytest.mark.bench
 
@@ -32,23 +31,6 @@ POLICIES = {"auto": "auto", "torch default": str(len(os.sched_getaffinity(0))), 
 BUSY = (0, 1, 2)
 _BUSY_LOOP = "while True: pass"
 FIELDS = ["size", "busy", "policy", "threads_said", "wall_s"]
-
-
-def _done(path: Path) -> set[tuple[str, str, str]]:
-    if not path.exists():
-        return set()
-    with path.open() as f:
-        return {(r["size"], r["busy"], r["policy"]) for r in csv.DictReader(f)}
-
-
-def _append(path: Path, row: dict) -> None:
-    new = not path.exists()
-    with path.open("a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        if new:
-            writer.writeheader()
-        writer.writerow(row)
-    print("  " + ", ".join(f"{k}={v}" for k, v in row.items()), flush=True)
 
 
 def _demo(size: int, threads: str, folder: Path) -> tuple[float, str]:
@@ -65,7 +47,7 @@ def _demo(size: int, threads: str, folder: Path) -> tuple[float, str]:
 
 def test_demo_beside_busy_processes(tmp_path):
     path = out_dir() / "threads.csv"
-    done = _done(path)
+    done = done_keys(path, ("size", "busy", "policy"))
     sizes = [int(s) for s in os.environ.get("SKINLAYERS_BENCH_SIZES", "64").split(",")]
     runs = os.environ.get("SKINLAYERS_BENCH_RUNS")
     chosen = {tuple(r.split(":", 1)) for r in runs.split(",")} if runs else None
@@ -84,4 +66,4 @@ def test_demo_beside_busy_processes(tmp_path):
                     for p in loops:
                         p.kill()
                         p.wait()
-                _append(path, {"size": size, "busy": busy, "policy": name, "threads_said": said, "wall_s": round(wall, 1)})
+                append_rows(path, FIELDS, [{"size": size, "busy": busy, "policy": name, "threads_said": said, "wall_s": round(wall, 1)}])
