@@ -46,8 +46,9 @@ import typer
 
 from .formats.errors import InputError
 
-__all__ = ["CATALOGUE_DEFAULT", "Filter", "Radiometry", "band_jacobian", "default_catalogue", "Criterion",
-           "exchange_search", "exhaustive_search", "filter_information", "prior_skins", "read_catalogue", "search"]
+__all__ = ["CATALOGUE_DEFAULT", "CRITERIA", "BandDesign", "Criterion", "Filter", "Radiometry", "band_jacobian", "bound_variance",
+           "default_catalogue", "design_bands", "exchange_search", "exhaustive_search", "filter_information", "prior_skins",
+           "read_catalogue", "search", "shared_pixels", "write_design"]
 
 #: The default catalogue: 10-nm filters every 10 nm over 400–720 nm (centre, FWHM in nm).
 CATALOGUE_DEFAULT = (400.0, 720.0, 10.0, 10.0)
@@ -63,6 +64,22 @@ EXCHANGE_STARTS = 12
 #: The fit's band quadrature (``reconstruct/problem.py``): offsets in σ of the band, weights.
 BAND_NODES = ((0.0, 2.0 / 3.0), (-math.sqrt(3.0), 1.0 / 6.0), (math.sqrt(3.0), 1.0 / 6.0))
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+#: The criteria (``Criterion``), in the words ``design.json`` and the chart use.
+CRITERION_WORDS = {
+    "rig": "the worst map's expected bound (mean over the prior of log(1 + CRB/target²); C_m, β_m, C_he, C_hd in the "
+           "fit's layout) over the same for the rig's own bands: below 1, every map improves on the rig",
+    "targets": "A-optimal: the maps' expected bounds (mean over the prior of log(1 + CRB/target²); C_m, β_m, C_he, C_hd "
+               "in the fit's layout) summed",
+}
+CRITERIA = tuple(CRITERION_WORDS)
+#: Counts the chart of the bound against N spans: one band per parameter and the scale, to a full wheel.
+CHART_COUNTS = range(6, 12)
+#: Evenly spaced comparison: the catalogue's span in ``count`` equal steps.
+COMPARISONS = ("chosen", "current rig", "evenly spaced")
+#: Bytes a batch of sets may gather at once (each set's information: count × skins × 5 × 5 float64).
+SCORE_BATCH_BYTES = 64 * 2**20
+#: Exchange passes from one start at most (each lowers the score; the searches here end in a few).
+MAX_EXCHANGES = 200
 
 
 @dataclass(frozen=True)
@@ -152,15 +169,16 @@ class Radiometry:
         s = self.settings.sensor
         g = self._gain(iso or self.iso(f))
         e = torch.as_tensor(self.electrons(f), dtype=reflectance.dtype) * torch.tensor([1.0, 2.0, 1.0], dtype=reflectance.dtype)
-        floor = 4 * ((s.read_noise_e / g) ** 2 + s.read_noise_dn**2 + 1.0 / 12.0)  # a superpixel's read noise and DN step
+        dark_var = 4 * ((s.read_noise_e / g) ** 2 + s.read_noise_dn**2 + 1.0 / 12.0)  # a superpixel's read noise and DN step
 
         def mean_var(rho):
             mu_e = float(e.sum()) * rho * self.rig.polarization.skin_factor
-            return mu_e / g, mu_e / g**2 + floor
+            return mu_e / g, mu_e / g**2 + dark_var
 
         skin_dn, skin_var = mean_var(reflectance)
         ref_dn, ref_var = mean_var(torch.as_tensor(self.spectralon(f) / self.rig.polarization.skin_factor, dtype=reflectance.dtype))
-        relative = (skin_var + floor) / skin_dn**2 + (ref_var + floor) / ref_dn**2
+        # the black frame is subtracted from both: its variance (read noise alone) counts once in each
+        relative = (skin_var + dark_var) / skin_dn**2 + (ref_var + dark_var) / ref_dn**2
         return reflectance * torch.sqrt(relative / self.superpixels)
 
     def _gain(self, iso: int) -> float:
@@ -186,9 +204,10 @@ def prior_skins(samples: int = PRIOR_SAMPLES, seed: int = PRIOR_SEED) -> torch.T
     return torch.cat(out)
 
 
-def band_jacobian(skins: torch.Tensor, filters: Sequence[Filter]) -> tuple[torch.Tensor, torch.Tensor]:
-    """The fit's band reflectance ``(M, F)`` of each skin ``(M, 5)`` through each filter, and its derivative
-    ``(M, F, 5)`` in log C_m, β_m, log C_he, log C_bc, log C_hd (``reconstruct/problem.py``'s band model)."""
+def band_jacobian(skins: torch.Tensor, filters: Sequence[Filter], view_angle_deg: float = 30.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """The fit's band reflectance ``(M, F)`` of each skin ``(M, 5)`` through each filter, seen at
+    ``view_angle_deg``, and its derivative ``(M, F, 5)`` in log C_m, β_m, log C_he, log C_bc, log C_hd
+    (``reconstruct/problem.py``'s band model)."""
     from .model import SkinModel  # noqa: PLC0415
     from .model.params import SkinParams  # noqa: PLC0415
     from .model.radiometry import exit_factor  # noqa: PLC0415
@@ -196,7 +215,7 @@ def band_jacobian(skins: torch.Tensor, filters: Sequence[Filter]) -> tuple[torch
 
     model = SkinModel(ModelSettings())
     o = model.settings.optics
-    exit = exit_factor(o.n_epidermis, o.n_above, math.cos(math.radians(30.0)))
+    exit = exit_factor(o.n_epidermis, o.n_above, math.cos(math.radians(view_angle_deg)))
     centres = torch.tensor([f.centre_nm for f in filters], dtype=torch.float64)
     sigmas = torch.tensor([f.fwhm_nm * FWHM_TO_SIGMA for f in filters], dtype=torch.float64)
     nodes = torch.stack([centres + k * sigmas for k, _ in BAND_NODES], dim=1)  # (F, 3)
@@ -222,7 +241,7 @@ def _from_u(u: torch.Tensor) -> torch.Tensor:
 def filter_information(radiometry: Radiometry, skins: torch.Tensor, filters: Sequence[Filter]) -> torch.Tensor:
     """Each filter's Fisher information on each skin, ``(F, M, 5, 5)``: J Jᵀ / σ², σ the calibrated
     reflectance's noise at that skin's band reflectance."""
-    band, jac = band_jacobian(skins, filters)
+    band, jac = band_jacobian(skins, filters, radiometry.rig.camera.angle_deg)
     sd = torch.stack([radiometry.reflectance_sd(f, band[:, j]) for j, f in enumerate(filters)], dim=1)  # (M, F)
     weighted = jac / sd[..., None]
     return torch.einsum("mfi,mfj->fmij", weighted, weighted)
@@ -264,16 +283,6 @@ def bound_variance(fisher: torch.Tensor, shared: torch.Tensor) -> torch.Tensor:
     return out
 
 
-#: The criteria (``Criterion``), in the words ``design.json`` and the chart use.
-CRITERION_WORDS = {
-    "rig": "the worst map's expected bound (mean over the prior of log(1 + CRB/target²); C_m, β_m, C_he, C_hd in the "
-           "fit's layout) over the same for the rig's own bands: below 1, every map improves on the rig",
-    "targets": "A-optimal: the maps' expected bounds (mean over the prior of log(1 + CRB/target²); C_m, β_m, C_he, C_hd "
-               "in the fit's layout) summed",
-}
-CRITERIA = tuple(CRITERION_WORDS)
-
-
 class Criterion:
     """A set of filters' score, lower is better. Each scored map's (``MAP_TARGETS``: C_m, β_m, C_he, C_hd;
     C_bc has none) expected bound is the mean over the prior of log(1 + variance/target²): the variance
@@ -297,13 +306,14 @@ class Criterion:
         """Each scored map's expected bound ``(B, maps)`` of sets ``(n,)`` or ``(B, n)``."""
         index = torch.as_tensor(chosen, dtype=torch.long)
         batch = index.reshape(-1, index.shape[-1])
-        variance = bound_variance(self.information[batch].sum(dim=1), self.shared)  # (B, M, 5)
+        variance = bound_variance(self.information[batch].sum(dim=1), self.shared).clamp_min(0)  # (B, M, 5)
         return torch.log1p(variance[..., self.maps] / self.targets**2).mean(dim=1)
 
     def __call__(self, chosen) -> torch.Tensor:
         """The scores ``(B,)`` (a scalar for one set)."""
         expected = self.expected(chosen)
         score = (expected / self.reference).max(-1).values if self.kind == "rig" else expected.sum(-1)
+        score = torch.nan_to_num(score, nan=math.inf)  # a set whose bound cannot be computed is never chosen
         return score.reshape(torch.as_tensor(chosen).shape[:-1])
 
 
@@ -324,9 +334,10 @@ class SearchResult:
     seconds: float
 
 
-def exhaustive_search(criterion: Criterion, count: int, batch: int = 4096) -> SearchResult:
-    """Every combination of ``count`` filters, scored in batches; the best."""
+def exhaustive_search(criterion: Criterion, count: int) -> SearchResult:
+    """Every combination of ``count`` filters, scored in batches of ``SCORE_BATCH_BYTES``; the best."""
     start = time.perf_counter()
+    batch = max(1, SCORE_BATCH_BYTES // (count * criterion.information[0].numel() * 8))
     best, best_score, evaluated = None, math.inf, 0
     combos = itertools.combinations(range(criterion.candidates), count)
     while chunk := list(itertools.islice(combos, batch)):
@@ -348,7 +359,7 @@ def exchange_search(criterion: Criterion, count: int, starts: int = EXCHANGE_STA
     for _ in range(starts):
         chosen = sorted(torch.randperm(size, generator=generator)[:count].tolist())
         score = float(criterion(chosen))
-        while True:
+        for _ in range(MAX_EXCHANGES):
             swaps = [sorted([*chosen[:i], c, *chosen[i + 1:]]) for i in range(count) for c in range(size) if c not in chosen]
             scores = criterion(torch.tensor(swaps))
             evaluated += len(swaps)
@@ -369,12 +380,6 @@ def search(criterion: Criterion, count: int) -> SearchResult:
     if math.comb(size, count) <= EXHAUSTIVE_LIMIT:
         return exhaustive_search(criterion, count)
     return exchange_search(criterion, count)
-
-
-#: Counts the chart of the bound against N spans: one band per parameter and the scale, to a full wheel.
-CHART_COUNTS = range(6, 12)
-#: Evenly spaced comparison: the catalogue's span in ``count`` equal steps.
-COMPARISONS = ("chosen", "current rig", "evenly spaced")
 
 
 @dataclass
@@ -410,26 +415,33 @@ def design_bands(catalogue: Sequence[Filter], count: int, rig=None, kind: str = 
     sets = {"chosen": list(found.chosen), **sets}
     bounds = {name: crb_per_parameter(information, chosen, shared) for name, chosen in sets.items()}
     scores = {name: float(criterion(chosen)) for name, chosen in sets.items()}
-    by_count = {k: search(criterion, k).score for k in CHART_COUNTS if k <= n}
+    by_count = {k: found.score if k == count else search(criterion, k).score for k in CHART_COUNTS if k <= n}
     chosen = [catalogue[i] for i in found.chosen]
     return BandDesign(chosen, [radiometry.iso(f) for f in chosen], kind, found, bounds, scores, by_count, time.perf_counter() - start)
 
 
-def write_design(design: BandDesign, out: Path, rig=None) -> dict[str, Path]:
-    """``design.json``, ``rig.yaml`` (the rig with the chosen bands and their ISOs) and
-    ``bound_vs_count.png`` in ``out``; their paths by kind."""
+#: What ``design-bands`` writes; ``design.json`` last (its presence says the rest is there).
+PRODUCTS = ("rig.yaml", "bound_vs_count.png", "design.json")
+
+
+def write_design(design: BandDesign, out: Path, rig=None, *, force: bool = False) -> dict[str, Path]:
+    """``design.json``, ``rig.yaml`` (the rig with the chosen bands and their ISOs at f/10, the ISOs' rule)
+    and ``bound_vs_count.png`` into ``out``, under the outputs' promises (``formats/outputs.py``: never in
+    a session, nothing replaced without ``force``, whole or absent); their paths by kind."""
     import json  # noqa: PLC0415
 
     import yaml  # noqa: PLC0415
 
     from .acquire.rig import load_rig  # noqa: PLC0415
     from .formats.files import atomic_write  # noqa: PLC0415
+    from .formats.outputs import claim_outputs  # noqa: PLC0415
 
-    out.mkdir(parents=True, exist_ok=True)
     rig = rig or load_rig()
     positions = [p for p in range(1, rig.wheel.position_count + 1) if p != rig.wheel.dark_position]
-    bands = [{"wavelength_nm": f.centre_nm, "fwhm_nm": f.fwhm_nm, "filter_position": position, "iso": iso, "shutter_s": 0.01,
-              "aperture_f": 10.0} for f, iso, position in zip(design.chosen, design.isos, positions)]
+    if len(design.chosen) > len(positions):
+        raise InputError(f"{len(design.chosen)} filters: the wheel holds {len(positions)} beside its dark slot")
+    bands = [{"wavelength_nm": f.centre_nm, "fwhm_nm": f.fwhm_nm, "filter_position": position, "iso": iso, "aperture_f": 10.0}
+             for f, iso, position in zip(design.chosen, design.isos, positions)]
     rig_text = yaml.safe_dump({**rig.model_dump(mode="json"), "bands": bands}, sort_keys=False)
     record = {
         "criterion": {"kind": design.criterion, "meaning": CRITERION_WORDS[design.criterion]},
@@ -438,13 +450,14 @@ def write_design(design: BandDesign, out: Path, rig=None) -> dict[str, Path]:
         "score": design.scores, "crb_median_sd": design.bounds,
         "best_score_by_count": {str(n): s for n, s in design.by_count.items()}, "seconds": round(design.seconds, 1),
     }
-    paths = {"record": atomic_write(out / "design.json", (json.dumps(record, indent=1) + "\n").encode()),
-             "rig": atomic_write(out / "rig.yaml", ("# skinlayers design-bands: the rig with the chosen bands\n" + rig_text).encode())}
-    paths["chart"] = _chart(design, out / "bound_vs_count.png")
-    return paths
+    with claim_outputs(out, PRODUCTS, force=force, marker="design.json", what="band design") as staging:
+        atomic_write(staging.path("rig.yaml"), ("# skinlayers design-bands: the rig with the chosen bands\n" + rig_text).encode())
+        _chart(design, len(rig.bands), staging.path("bound_vs_count.png"))
+        atomic_write(staging.path("design.json"), (json.dumps(record, indent=1) + "\n").encode())
+    return {"rig": out / "rig.yaml", "chart": out / "bound_vs_count.png", "record": out / "design.json"}
 
 
-def _chart(design: BandDesign, path: Path) -> Path:
+def _chart(design: BandDesign, rig_bands: int, path: Path) -> Path:
     import io  # noqa: PLC0415
 
     import matplotlib  # noqa: PLC0415
@@ -458,8 +471,8 @@ def _chart(design: BandDesign, path: Path) -> Path:
     counts = list(design.by_count)
     ax.plot(counts, [design.by_count[n] for n in counts], "o-", label="best set of N from the catalogue")
     n = len(design.chosen)
-    for name, marker in (("current rig", "s"), ("evenly spaced", "^")):
-        ax.plot([n], [design.scores[name]], marker, label=f"{name} ({n} bands)")
+    for name, marker, bands in (("chosen", "*", n), ("current rig", "s", rig_bands), ("evenly spaced", "^", n)):
+        ax.plot([bands], [design.scores[name]], marker, ms=9, label=f"{name} ({bands} bands)")
     ax.set_xlabel("bands (N)")
     ax.set_ylabel("worst map's bound / the rig's" if design.criterion == "rig" else "Σ maps' expected log(1 + CRB/target²)")
     ax.set_title("Cramér–Rao bound of the fit against the number of filters")
@@ -479,6 +492,7 @@ def design_bands_cli(
     criterion: str = typer.Option("rig", "--criterion", help="rig: improve every map most on the rig's own bands; "
                                                              "targets: A-optimal, each map over its target."),
     out: Path = typer.Option(Path("design-bands"), "-o", "--out", help="Folder for design.json, rig.yaml and the chart."),
+    force: bool = typer.Option(False, "--force", help="Replace an earlier design in the output folder."),
 ) -> None:
     """Choose the rig's filters from a catalogue by the Cramér–Rao bound of the fit (DWRR08 §5).
 
@@ -489,12 +503,16 @@ def design_bands_cli(
 
     if criterion not in CRITERIA:
         raise InputError(f"--criterion {criterion!r}: choose one of {', '.join(CRITERIA)}")
+    from .formats.outputs import check_outputs  # noqa: PLC0415
+
     catalogue = read_catalogue(catalog) if catalog is not None else default_catalogue()
     rig = load_rig(rig_path)
-    if not 1 <= count <= rig.wheel.position_count - 1:
-        raise InputError(f"--count {count}: choose 1 to {rig.wheel.position_count - 1}, the filters the wheel holds beside its dark slot")
+    most = min(rig.wheel.position_count - 1, len(catalogue))
+    if not 1 <= count <= most:
+        raise InputError(f"--count {count}: choose 1 to {most} (the wheel's filters beside its dark slot, the catalogue's filters)")
+    check_outputs(out, PRODUCTS, force=force, what="band design")  # refused before the search
     design = design_bands(catalogue, count, rig, criterion)
-    paths = write_design(design, out, rig)
+    paths = write_design(design, out, rig, force=force)
     typer.echo("chosen: " + ", ".join(f"{f.centre_nm:g} nm (ISO {iso})" for f, iso in zip(design.chosen, design.isos)))
     typer.echo(f"search: {design.search.method}, {design.search.evaluated} sets in {design.search.seconds:.1f} s; "
                f"all of it {design.seconds:.0f} s")

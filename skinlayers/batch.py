@@ -19,7 +19,8 @@ What a study can rely on:
   and the next run tries it again.
 - **A worker lost mid-task** (killed, out of memory, its machine gone) has its task rerun on another
   by the Dask scheduler; the outputs of the lost attempt were never moved into place, and the folder's
-  lock of the dead process is taken over.
+  lock of the dead process is taken over by a rerun on the same machine (one left on another machine is
+  refused; docs/batch.md).
 - ``batch.json`` is rewritten (atomically) after every session, so an interrupted batch shows what it
   did; the study's table, record and figures are written when the tasks are done.
 """
@@ -27,6 +28,7 @@ What a study can rely on:
 from __future__ import annotations
 
 import csv
+import io
 import json
 import logging
 import os
@@ -50,6 +52,13 @@ STEPS = ("calibrate", "reconstruct")
 #: Columns each session gives from its manifest where the study's list does not: column → manifest key.
 MANIFEST_COLUMNS = {"subject": "subject", "site": "site", "date": "created"}
 LEDGER_NAME, TABLE_NAME, RECORD_NAME = "batch.json", "study.csv", "study.json"
+#: Columns the study table writes itself: a study's list may not name its own columns so.
+RESERVED_COLUMNS = ("status", "error", "seconds", "pixels")
+DEVICES = ("cpu", "cuda", "auto")
+#: Dask's nanny starts each worker with ``MALLOC_TRIM_THRESHOLD_=65536``, which fixes glibc's mmap threshold:
+#: every tensor temporary is then mapped and unmapped anew, and the fit slows down (docs/batch.md,
+#: "Workers started outside skinlayers"). Unset for our workers.
+WORKER_ENVIRON = {"MALLOC_TRIM_THRESHOLD_": None}
 RECONSTRUCTION_SUFFIX = "_reconstruction"
 #: Torch threads of each task: one per worker process, one worker per core (formats/threads.py says why).
 TASK_THREADS = 1
@@ -111,7 +120,7 @@ def read_study(study: str | Path) -> list[StudySession]:
         found = sorted(p.parent for p in study.rglob("manifest.json"))
         if not found:
             raise InputError(f"{study}: no sessions (folders holding manifest.json) in this folder")
-        return [StudySession(p, p.relative_to(study).as_posix() or p.name) for p in found]
+        return [StudySession(p.resolve(), p.name if p == study else p.relative_to(study).as_posix()) for p in found]
     if not study.is_file():
         raise InputError(f"{study}: no such study folder or CSV")
     return _sessions_of_csv(study)
@@ -119,11 +128,15 @@ def read_study(study: str | Path) -> list[StudySession]:
 
 def _sessions_of_csv(path: Path) -> list[StudySession]:
     try:
-        rows = list(csv.DictReader(path.read_text(encoding="utf-8-sig").splitlines()))
+        reader = csv.DictReader(io.StringIO(path.read_text(encoding="utf-8-sig")))
+        columns, rows = reader.fieldnames or [], list(reader)
     except (UnicodeDecodeError, csv.Error) as exc:
         raise InputError(f"{path}: not a readable CSV study list ({exc})") from None
-    if not rows or "session" not in rows[0]:
+    if not rows or "session" not in columns:
         raise InputError(f"{path}: a study list needs a header with a 'session' column and one row per session")
+    clashing = sorted({c for c in columns if columns.count(c) > 1} | {c for c in columns if c in RESERVED_COLUMNS or _is_map_column(c)})
+    if clashing:
+        raise InputError(f"{path}: column(s) {', '.join(clashing)} repeated or reserved for the study table; rename them")
     sessions, seen = [], set()
     for line, row in enumerate(rows, start=2):
         name = (row.get("session") or "").strip()
@@ -132,9 +145,15 @@ def _sessions_of_csv(path: Path) -> list[StudySession]:
         if name in seen:
             raise InputError(f"{path}, line {line}: session {name} listed twice")
         seen.add(name)
-        folder = Path(name) if Path(name).is_absolute() else path.parent / name
+        folder = (Path(name) if Path(name).is_absolute() else path.parent / name).resolve()  # workers may start elsewhere
         sessions.append(StudySession(folder, name, {k: (v or "").strip() for k, v in row.items() if k != "session"}))
     return sessions
+
+
+def _is_map_column(column: str) -> bool:
+    from .study import MAPS, STATS  # noqa: PLC0415
+
+    return any(column == f"{n}_{s}" for n in MAPS for s in STATS)
 
 
 def reconstruction_dir(session: Path) -> Path:
@@ -180,7 +199,7 @@ def _run_steps(session: Path, options: BatchOptions) -> tuple[str, ...]:
     if "calibrate" in options.steps and not (calibrated / REPORT_NAME).is_file():
         calibrate_session(session, calibrated, options.calibration_settings, overwrite=True)  # without its marker: an attempt cut short
         ran.append("calibrate")
-    if "reconstruct" in options.steps and not (reconstruction_dir(session) / "fit.json").is_file():
+    if "reconstruct" in options.steps and (ran or not (reconstruction_dir(session) / "fit.json").is_file()):  # a new cube: a new fit
         from .reconstruct import load_fit_settings, reconstruct_cube  # noqa: PLC0415
 
         settings = options.fit_settings or load_fit_settings(None)
@@ -233,16 +252,24 @@ def _task_device(device: str) -> str:
 
 
 class _Ledger:
-    """``batch.json``: the latest outcome of every session, rewritten atomically after each one."""
+    """``batch.json``: the latest outcome of every session (an earlier run's kept until this run replaces
+    it), rewritten atomically after each one."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
+        self.entries: dict[str, dict] = {}
         self.outcomes: dict[str, SessionOutcome] = {}
+        try:
+            self.entries = json.loads(path.read_text())["sessions"]
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
 
     def record(self, outcome: SessionOutcome) -> None:
+        from .study import without_nan  # noqa: PLC0415
+
         self.outcomes[outcome.session] = outcome
-        entries = {name: asdict(o) for name, o in self.outcomes.items()}
-        atomic_write(self.path, (json.dumps({"sessions": entries}, indent=1, default=str) + "\n").encode())
+        self.entries[outcome.session] = without_nan(asdict(outcome))
+        atomic_write(self.path, (json.dumps({"sessions": self.entries}, indent=1, default=str) + "\n").encode())
 
 
 def run_batch(
@@ -258,14 +285,14 @@ def run_batch(
     out.mkdir(parents=True, exist_ok=True)
     ledger = _Ledger(out / LEDGER_NAME)
     start = time.perf_counter()
-    with _dask_client(client, scheduler, workers) as dask_client:
+    with _dask_client(client, scheduler, workers or default_workers(options.device)) as dask_client:
         futures = {dask_client.submit(process_session, s, options, pure=False): s for s in sessions}
         for future in as_completed(futures):
             outcome = _outcome_of(future, futures[future])
             ledger.record(outcome)
             if on_outcome is not None:
                 on_outcome(outcome)
-        count = len(dask_client.scheduler_info()["workers"])
+        count = len(dask_client.nthreads())
     ordered = {s.name: ledger.outcomes[s.name] for s in sessions}
     return BatchResult(ordered, count, time.perf_counter() - start)
 
@@ -278,19 +305,13 @@ def _outcome_of(future, session: StudySession) -> SessionOutcome:
         return SessionOutcome(session.name, "failed", error=" ".join(f"{type(exc).__name__}: {exc}".split()))
 
 
-def default_workers() -> int:
-    """One worker per GPU where there are GPUs, else one per usable core."""
+def default_workers(device: str = "auto") -> int:
+    """One worker per GPU where there are GPUs and the device is not the CPU, else one per usable core."""
     import torch  # noqa: PLC0415
 
     from .formats.threads import usable_cpus  # noqa: PLC0415
 
-    return torch.cuda.device_count() if torch.cuda.is_available() else usable_cpus()
-
-
-#: Dask's nanny starts each worker with ``MALLOC_TRIM_THRESHOLD_=65536``, which fixes glibc's mmap threshold:
-#: every tensor temporary is then mapped and unmapped anew, and the fit runs about half as fast
-#: (docs/batch.md, "Workers started outside skinlayers"). Unset for our workers.
-WORKER_ENVIRON = {"MALLOC_TRIM_THRESHOLD_": None}
+    return torch.cuda.device_count() if device != "cpu" and torch.cuda.is_available() else usable_cpus()
 
 
 def local_cluster(workers: int):
@@ -318,11 +339,15 @@ class _dask_client:
         if self.scheduler is not None:
             try:
                 self.client = Client(self.scheduler, timeout="30s")
-            except OSError as exc:
+            except (OSError, ValueError, TypeError) as exc:
                 raise InputError(f"--scheduler {self.scheduler}: no Dask scheduler answers there ({exc})") from None
             return self.client
-        self.cluster = local_cluster(self.workers or default_workers())
-        self.client = Client(self.cluster)
+        self.cluster = local_cluster(self.workers)
+        try:
+            self.client = Client(self.cluster)
+        except BaseException:
+            self.cluster.close()
+            raise
         return self.client
 
     def __exit__(self, *exc) -> None:
@@ -333,14 +358,16 @@ class _dask_client:
 
 def study_rows(sessions: Sequence[StudySession], outcomes: dict[str, SessionOutcome]) -> list[dict]:
     """The study table's rows: the session's name, its listed columns (the manifest's subject, site and
-    date where the list leaves them out or empty), its outcome, and its maps' statistics."""
-    rows = []
+    date where the list leaves them out or empty; every row holds every column, empty where unknown), its
+    outcome, and its maps' statistics."""
+    listed = []
     for s in sessions:
         o = outcomes[s.name]
-        columns = {**s.columns, **{k: v for k, v in o.manifest.items() if not s.columns.get(k)}}
-        rows.append({"session": s.name, **columns, "status": o.status, "error": o.error, "seconds": round(o.seconds, 3),
-                     **o.summary})
-    return rows
+        listed.append({**s.columns, **{k: v for k, v in o.manifest.items() if not s.columns.get(k)}})
+    names = list(dict.fromkeys(c for columns in listed for c in columns))
+    return [{"session": s.name, **{c: columns.get(c, "") for c in names}, "status": outcomes[s.name].status,
+             "error": outcomes[s.name].error, "seconds": round(outcomes[s.name].seconds, 3), **outcomes[s.name].summary}
+            for s, columns in zip(sessions, listed)]
 
 
 def write_study(out: str | Path, sessions: Sequence[StudySession], outcomes: dict[str, SessionOutcome],
@@ -390,6 +417,7 @@ def batch(
     """
     sessions = read_study(study)
     options = _checked_options(steps, config, calibration_config, device, workers)
+    _check_groups(group, sessions)
     out = out or default_study_out(study)
     from .formats.outputs import refuse_inside_session  # noqa: PLC0415
 
@@ -418,12 +446,20 @@ def _checked_options(steps: str, config: Path | None, calibration_config: Path |
     chosen = tuple(s.strip() for s in steps.split(",") if s.strip())
     if not chosen or any(s not in STEPS for s in chosen):
         raise InputError(f"--steps {steps!r}: choose from {', '.join(STEPS)}, comma-separated")
-    if device not in ("cpu", "cuda", "auto"):
-        raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
+    if device not in DEVICES:
+        raise InputError(f"--device {device!r}: expected {', '.join(DEVICES)}")
     if workers is not None and workers < 1:
         raise InputError(f"--workers {workers}: expected at least 1")
     return BatchOptions(tuple(s for s in STEPS if s in chosen), load_fit_settings(config),
                         load_calibration_settings(calibration_config), device)
+
+
+def _check_groups(group: Sequence[str], sessions: Sequence[StudySession]) -> None:
+    """``--group`` columns must be the study list's or the manifest's, refused before any work."""
+    known = {*MANIFEST_COLUMNS, *(c for s in sessions for c in s.columns)}
+    unknown = [g for g in group if g not in known]
+    if unknown:
+        raise InputError(f"--group {', '.join(unknown)}: not a column of the study (its columns: {', '.join(sorted(known))})")
 
 
 class _study_progress:

@@ -32,7 +32,8 @@ import numpy as np
 from .formats.files import atomic_write
 
 __all__ = ["MAPS", "STATS", "TRIM", "correlations", "grouping_columns", "group_statistics", "principal_components",
-           "session_summary", "study_record", "trimmed_mean", "visit_changes", "write_study_table"]
+           "reconstructed", "session_summary", "study_record", "trimmed_mean", "visit_changes", "without_nan", "write_study_json",
+           "write_study_table"]
 
 MAPS = ("C_m", "beta_m", "C_he", "C_bc", "C_hd")
 #: What each session's row holds per map (over its scored pixels).
@@ -43,9 +44,16 @@ TRIM = 0.1
 IDENTITY_COLUMNS = ("session", "date", "status", "error", "seconds", "pixels")
 
 
+def reconstructed(rows: Sequence[dict]) -> list[dict]:
+    """The rows with maps' statistics (a session reconstructed now or before; not a calibration alone)."""
+    return [r for r in rows if r.get("status") in ("done", "skipped") and "pixels" in r]
+
+
 def trimmed_mean(values: np.ndarray, trim: float = TRIM) -> float:
-    """The mean of ``values`` (1-D) without the ``trim`` share at each end (rounded down; NaN when empty)."""
-    values = np.sort(np.asarray(values, dtype=np.float64).ravel())
+    """The mean of the finite ``values`` (1-D) without the ``trim`` share at each end (rounded down; NaN
+    when none is finite)."""
+    values = np.asarray(values, dtype=np.float64).ravel()
+    values = np.sort(values[np.isfinite(values)])
     if values.size == 0:
         return math.nan
     cut = int(trim * values.size)
@@ -65,6 +73,7 @@ def session_summary(reconstruction: str | Path) -> dict[str, float]:
     row: dict[str, float] = {"pixels": int(keep.sum())}
     for name in MAPS:
         values = np.asarray(channels[name], dtype=np.float64)[keep]
+        values = values[np.isfinite(values)]
         empty = values.size == 0
         row[f"{name}_trimmed_mean"] = trimmed_mean(values)
         row[f"{name}_median"] = math.nan if empty else float(np.median(values))
@@ -97,23 +106,27 @@ def group_statistics(rows: Sequence[dict], column: str) -> dict[str, dict]:
         entry: dict = {"sessions": len(members)}
         for name in MAPS:
             means = np.array([float(r[f"{name}_trimmed_mean"]) for r in members])
+            means = means[np.isfinite(means)]
             entry[name] = {"trimmed_mean": trimmed_mean(means), "sd": float(means.std(ddof=1)) if means.size > 1 else math.nan}
         out[value] = entry
     return out
 
 
-def _session_means(rows: Sequence[dict]) -> tuple[list[str], np.ndarray]:
-    """The maps that vary across sessions and the sessions' trimmed means of them ``(sessions, maps)``."""
+def _session_means(rows: Sequence[dict]) -> tuple[list[str], np.ndarray, list[dict]]:
+    """The maps that vary across sessions, the sessions' trimmed means of them ``(sessions, maps)`` and those
+    sessions (a session with a map not finite is left out, not the map)."""
     table = np.array([[float(r[f"{n}_trimmed_mean"]) for n in MAPS] for r in rows], dtype=np.float64).reshape(len(rows), len(MAPS))
-    varies = [j for j in range(len(MAPS)) if np.isfinite(table[:, j]).all() and np.ptp(table[:, j]) > 0] if len(rows) else []
-    return [MAPS[j] for j in varies], table[:, varies]
+    finite = np.isfinite(table).all(axis=1)
+    table, kept = table[finite], [r for r, f in zip(rows, finite) if f]
+    varies = [j for j in range(len(MAPS)) if len(kept) and np.ptp(table[:, j]) > 0]
+    return [MAPS[j] for j in varies], table[:, varies], kept
 
 
 def correlations(rows: Sequence[dict]) -> dict:
-    """Pearson's correlation of the maps' trimmed means across sessions (maps constant over the study left
-    out; empty below three sessions)."""
-    names, table = _session_means(rows)
-    if len(rows) < 3 or len(names) < 2:
+    """Pearson's correlation of the maps' trimmed means across sessions (maps constant over the study and
+    sessions with a map not finite left out; empty below three sessions)."""
+    names, table, kept = _session_means(rows)
+    if len(kept) < 3 or len(names) < 2:
         return {"maps": names, "matrix": []}
     return {"maps": names, "matrix": np.corrcoef(table, rowvar=False).round(6).tolist()}
 
@@ -121,26 +134,28 @@ def correlations(rows: Sequence[dict]) -> dict:
 def principal_components(rows: Sequence[dict]) -> dict:
     """PCA of the sessions' standardised trimmed means: per component its share of the variance and its
     loadings on the maps, and each session's scores (empty below three sessions)."""
-    names, table = _session_means(rows)
-    if len(rows) < 3 or not names:
-        return {"maps": names, "explained": [], "loadings": [], "scores": []}
+    names, table, kept = _session_means(rows)
+    if len(kept) < 3 or not names:
+        return {"maps": names, "explained": [], "loadings": [], "scores": {}}
     z = (table - table.mean(axis=0)) / table.std(axis=0, ddof=1)
     _, s, vt = np.linalg.svd(z, full_matrices=False)
     signs = np.where(vt[np.arange(len(vt)), np.abs(vt).argmax(axis=1)] < 0, -1.0, 1.0)  # largest loading positive
     vt = vt * signs[:, None]
     variance = s**2
     return {"maps": names, "explained": (variance / variance.sum()).round(6).tolist(), "loadings": vt.round(6).tolist(),
-            "scores": {str(r["session"]): (z[i] @ vt.T).round(6).tolist() for i, r in enumerate(rows)}}
+            "scores": {str(r["session"]): (z[i] @ vt.T).round(6).tolist() for i, r in enumerate(kept)}}
 
 
 def visit_changes(rows: Sequence[dict]) -> list[dict]:
-    """Between consecutive visits (by ``date``) of the same ``subject`` and ``site``: each map's change of
-    trimmed mean, absolute and relative to the earlier visit. Empty when the study lacks those columns."""
+    """Between consecutive visits (by ``date``, compared as text: ISO dates, YYYY-MM-DD) of the same
+    ``subject`` and ``site`` (both given): each map's change of trimmed mean, absolute and relative to the
+    earlier visit. Empty when the study lacks those columns."""
     if not rows or any(c not in rows[0] for c in ("subject", "site", "date")):
         return []
     visits: dict[tuple[str, str], list[dict]] = {}
     for r in rows:
-        visits.setdefault((str(r["subject"]), str(r["site"])), []).append(r)
+        if str(r["subject"]) and str(r["site"]):  # a session without them is nobody's visit
+            visits.setdefault((str(r["subject"]), str(r["site"])), []).append(r)
     out = []
     for (subject, site), seen in sorted(visits.items()):
         seen = sorted(seen, key=lambda r: (str(r["date"]), str(r["session"])))
@@ -156,8 +171,8 @@ def visit_changes(rows: Sequence[dict]) -> list[dict]:
 def study_record(rows: Sequence[dict], group_by: Sequence[str] = ()) -> dict:
     """``study.json``: the sessions counted by status, and over the reconstructed ones the groups of each
     grouping column, the correlations, the principal components and the visits' changes."""
-    done = [r for r in rows if r.get("status") in ("done", "skipped")]
-    columns = grouping_columns(done, group_by) if done else list(group_by)
+    done = reconstructed(rows)
+    columns = grouping_columns(done, group_by) if done else []
     return {
         "sessions": len(rows), "reconstructed": len(done),
         "failed": {str(r["session"]): r.get("error", "") for r in rows if r.get("status") == "failed"},
@@ -184,7 +199,7 @@ def write_study_table(path: str | Path, rows: Sequence[dict]) -> Path:
 
 def write_study_json(path: str | Path, record: dict) -> Path:
     """``study.json`` (atomic; NaN written as null)."""
-    return atomic_write(path, (json.dumps(_no_nan(record), indent=1) + "\n").encode())
+    return atomic_write(path, (json.dumps(without_nan(record), indent=1) + "\n").encode())
 
 
 def _is_map_column(column: str) -> bool:
@@ -197,11 +212,12 @@ def _cell(value) -> str:
     return repr(value) if isinstance(value, float) else str(value)  # repr: the CSV reads back the same float
 
 
-def _no_nan(value):
+def without_nan(value):
+    """``value`` (JSON-like) with every NaN float replaced by None (written as null)."""
     if isinstance(value, float):
         return None if math.isnan(value) else value
     if isinstance(value, dict):
-        return {k: _no_nan(v) for k, v in value.items()}
+        return {k: without_nan(v) for k, v in value.items()}
     if isinstance(value, list):
-        return [_no_nan(v) for v in value]
+        return [without_nan(v) for v in value]
     return value

@@ -3,6 +3,7 @@ every session's maps on one colour scale per map (``skinlayers.study`` computes 
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Sequence
 
@@ -13,7 +14,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from .formats.files import atomic_write
-from .study import MAPS
+from .study import MAPS, reconstructed
 
 __all__ = ["SHEET_ROWS", "plot_study"]
 
@@ -28,7 +29,7 @@ COLOUR_PERCENTILES = (1, 99)
 def plot_study(out: Path, rows: Sequence[dict], record: dict, maps: dict[str, Path]) -> dict[str, Path]:
     """Write ``study_groups.png`` (when the study has groups), ``study_pca.png`` (when it has components) and
     ``study_maps[_N].png`` (when a session has maps) into ``out``; their paths by kind."""
-    done = [r for r in rows if r.get("status") in ("done", "skipped")]
+    done = reconstructed(rows)
     paths: dict[str, Path] = {}
     if record["groups"]:
         paths["groups"] = _save(_groups_figure(done, list(record["groups"])), out / "study_groups.png")
@@ -36,9 +37,10 @@ def plot_study(out: Path, rows: Sequence[dict], record: dict, maps: dict[str, Pa
         paths["pca"] = _save(_pca_figure(done, record), out / "study_pca.png")
     names = [r["session"] for r in done if r["session"] in maps]
     pages = [names[i:i + SHEET_ROWS] for i in range(0, len(names), SHEET_ROWS)]
+    limits = _colour_limits(names, maps) if names else {}
     for k, page in enumerate(pages):
         suffix = "" if len(pages) == 1 else f"_{k + 1}"
-        paths[f"maps{suffix}"] = _save(_sheet_figure(page, maps, _colour_limits(names, maps)), out / f"study_maps{suffix}.png")
+        paths[f"maps{suffix}"] = _save(_sheet_figure(page, maps, limits), out / f"study_maps{suffix}.png")
     return paths
 
 
@@ -87,7 +89,8 @@ def _colour_limits(names: list[str], maps: dict[str, Path]) -> dict[str, tuple[f
     for session in names:
         for name, thumb in _thumbnails(maps[session]).items():
             pixels[name].append(thumb[np.isfinite(thumb)])
-    return {name: tuple(np.percentile(np.concatenate(v), COLOUR_PERCENTILES)) if v else (0.0, 1.0) for name, v in pixels.items()}
+    joined = {name: np.concatenate(v) if v else np.empty(0) for name, v in pixels.items()}
+    return {name: tuple(np.percentile(v, COLOUR_PERCENTILES)) if v.size else (0.0, 1.0) for name, v in joined.items()}
 
 
 def _sheet_figure(names: list[str], maps: dict[str, Path], limits: dict[str, tuple[float, float]]):
@@ -124,8 +127,6 @@ def _thumbnails(path: Path) -> dict[str, np.ndarray]:
 
 def _save(fig, path: Path) -> Path:
     """The figure as PNG at ``path`` (atomically)."""
-    import io  # noqa: PLC0415
-
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)
     plt.close(fig)

@@ -141,3 +141,17 @@ def test_the_command_writes_a_rig_that_loads(tmp_path, run_cli):
     assert [b.iso for b in rig.bands] == [f["iso"] for f in record["chosen"]] and (tmp_path / "d" / "bound_vs_count.png").is_file()
     code, _, err = run_cli("design-bands", "--count", "12", "-o", str(tmp_path / "e"))
     assert code == 1 and "--count 12" in err
+
+
+def test_a_design_is_not_written_over_an_earlier_one(tmp_path):
+    from skinlayers.band_design import BandDesign, Filter, SearchResult, write_design
+    from skinlayers.formats.outputs import OutputExistsError
+
+    design = BandDesign([Filter(450.0, 10.0)], [200], "rig", SearchResult((0,), 0.9, "exhaustive", 1, 0.0),
+                        {}, {"chosen": 0.9, "current rig": 1.0, "evenly spaced": 1.2}, {6: 1.0}, 0.0)
+    write_design(design, tmp_path / "d")
+    before = (tmp_path / "d" / "design.json").read_bytes()
+    with pytest.raises(OutputExistsError):
+        write_design(design, tmp_path / "d")
+    assert (tmp_path / "d" / "design.json").read_bytes() == before
+    write_design(design, tmp_path / "d", force=True)

@@ -177,7 +177,7 @@ def test_a_csv_study_keeps_its_columns_and_groups_by_them(tmp_path):
     (tmp_path / "listing.csv").write_text("session,subject,skin_type\nA/v1,A,II\nA/v2,A,II\nB/v1,,V\n")
     sessions = read_study(tmp_path / "listing.csv")
     assert [s.path for s in sessions] == [tmp_path / "A/v1", tmp_path / "A/v2", tmp_path / "B/v1"]
-    summary = lambda k: {f"{m}_trimmed_mean": float(k) for m in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")}  # noqa: E731
+    summary = lambda k: {"pixels": 1, **{f"{m}_trimmed_mean": float(k) for m in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")}}  # noqa: E731
     outcomes = {"A/v1": SessionOutcome("A/v1", "done", manifest={"subject": "ignored", "site": "arm"}, summary=summary(1)),
                 "A/v2": SessionOutcome("A/v2", "done", manifest={"site": "arm"}, summary=summary(3)),
                 "B/v1": SessionOutcome("B/v1", "failed", error="InputError: a frame is damaged")}
@@ -202,3 +202,37 @@ def test_a_step_cut_short_before_its_marker_is_run_again(study):
     outcome = process_session(read_study(study)[0], BatchOptions())
     assert (outcome.status, outcome.ran) == ("done", ("calibrate", "reconstruct")), outcome.error
     assert stale.read_bytes()[:4] == b"\x76\x2f\x31\x01"  # an OpenEXR file now
+
+
+def test_the_statistics_survive_what_a_study_holds():
+    """A calibration alone (no maps), a session without subject or site, a session with a map not finite."""
+    import json
+
+    from skinlayers.study import correlations, study_record, visit_changes
+
+    maps = ("C_m", "beta_m", "C_he", "C_bc", "C_hd")
+    stats = lambda k: {"pixels": 10, **{f"{m}_trimmed_mean": float(k + j) * (k + 1) for j, m in enumerate(maps)}}  # noqa: E731
+    rows = [{"session": f"s{k}", "subject": "", "site": "", "date": f"2026-01-0{k + 1}", "status": "done", **stats(k)} for k in range(4)]
+    rows[3]["C_he_trimmed_mean"] = math.nan
+    calibrated_only = {"session": "c", "subject": "", "site": "", "date": "", "status": "done"}
+    record = study_record([*rows, calibrated_only])
+    assert record["reconstructed"] == 4 and visit_changes(rows) == []  # nobody's visits are chained
+    assert correlations(rows)["maps"] == list(maps) and len(correlations(rows)["matrix"]) == 5  # s3 left out, not C_he
+    json.dumps(record)  # no NaN object left unwritable
+
+
+@pytest.mark.parametrize("header, words", [("session,site,site", "site"), ("session,status", "status"),
+                                           ("session,C_m_median", "C_m_median")])
+def test_a_study_list_may_not_repeat_or_take_the_tables_columns(tmp_path, header, words):
+    from skinlayers.batch import read_study
+    from skinlayers.formats.errors import InputError
+
+    listing = tmp_path / "study.csv"
+    listing.write_text(header + "\n" + ",".join(["s1"] + ["x"] * (header.count(","))) + "\n")
+    with pytest.raises(InputError, match=words):
+        read_study(listing)
+
+
+def test_an_unknown_group_is_refused_before_any_work(study, run_cli):
+    code, _, err = run_cli("batch", str(study), "--group", "skin_type")
+    assert code == 1 and "--group skin_type" in err and "subject" in err
