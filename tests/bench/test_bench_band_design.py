@@ -50,7 +50,7 @@ def test_chosen_bands_against_the_rigs_through_the_pipeline(tmp_path):
 
     base = out_dir() / "band_design"
     design = design_bands(default_catalogue(), 9)
-    paths = write_design(design, base / "design")
+    paths = write_design(design, base / "design", force=True)
     settings = load_simulation_settings(None).model_dump(mode="json")
     settings["sensor"]["white_electrons"] = float(Radiometry().white_electrons)  # the current rig's flash for both
     simulation = base / "simulation.yaml"
