@@ -416,7 +416,7 @@ def batch(
     A rerun does only what is missing (failed sessions again); batch.json records every session's outcome.
     """
     sessions = read_study(study)
-    options = _checked_options(steps, config, calibration_config, device, workers)
+    options = _checked_options(steps, config, calibration_config, device, workers, scheduler)
     _check_groups(group, sessions)
     out = out or default_study_out(study)
     from .formats.outputs import refuse_inside_session  # noqa: PLC0415
@@ -438,7 +438,7 @@ def batch(
 
 
 def _checked_options(steps: str, config: Path | None, calibration_config: Path | None, device: str,
-                     workers: int | None) -> BatchOptions:
+                     workers: int | None, scheduler: str | None) -> BatchOptions:
     """The options checked, and the settings files read, before any worker starts."""
     from .calibration.settings import load_calibration_settings  # noqa: PLC0415
     from .reconstruct import load_fit_settings  # noqa: PLC0415
@@ -450,6 +450,9 @@ def _checked_options(steps: str, config: Path | None, calibration_config: Path |
         raise InputError(f"--device {device!r}: expected {', '.join(DEVICES)}")
     if workers is not None and workers < 1:
         raise InputError(f"--workers {workers}: expected at least 1")
+    if workers is not None and scheduler is not None:
+        raise InputError("--workers sizes the LocalCluster; with --scheduler the cluster's own workers run the tasks "
+                         "(start more with `dask worker`)")
     return BatchOptions(tuple(s for s in STEPS if s in chosen), load_fit_settings(config),
                         load_calibration_settings(calibration_config), device)
 

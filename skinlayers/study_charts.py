@@ -30,6 +30,8 @@ def plot_study(out: Path, rows: Sequence[dict], record: dict, maps: dict[str, Pa
     """Write ``study_groups.png`` (when the study has groups), ``study_pca.png`` (when it has components) and
     ``study_maps[_N].png`` (when a session has maps) into ``out``; their paths by kind."""
     done = reconstructed(rows)
+    for stale in [*out.glob("study_maps*.png"), out / "study_groups.png", out / "study_pca.png"]:
+        stale.unlink(missing_ok=True)  # an earlier run's figures would pass for this one's
     paths: dict[str, Path] = {}
     if record["groups"]:
         paths["groups"] = _save(_groups_figure(done, list(record["groups"])), out / "study_groups.png")

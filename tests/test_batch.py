@@ -167,6 +167,8 @@ def test_bad_options_are_refused_before_any_worker_starts(study, run_cli):
     assert code == 1 and "--steps" in err
     code, _, err = run_cli("batch", str(study / "s1" / "truth"))
     assert code == 1 and "no sessions" in err
+    code, _, err = run_cli("batch", str(study), "--workers", "2", "--scheduler", "tcp://127.0.0.1:1")
+    assert code == 1 and "--workers" in err
 
 
 def test_a_csv_study_keeps_its_columns_and_groups_by_them(tmp_path):
