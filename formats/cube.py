@@ -45,13 +45,16 @@ from .settings import Strict, format_validation_error
 from .version import software_version
 
 __all__ = [
-    "CALIBRATED_SUFFIX", "CUBE_NAME", "Cube", "CubeError", "CubeHeader", "Provenance", "calibrated_dir", "read_cube", "write_cube",
+    "CALIBRATED_SUFFIX", "CUBE_NAME", "RECONSTRUCTION_SUFFIX", "Cube", "CubeError", "CubeHeader", "Provenance", "calibrated_dir",
+    "read_cube", "reconstruction_dir", "write_cube",
 ]
 
 #: File name of the cube in a calibrated folder.
 CUBE_NAME = "cube.exr"
 #: Calibration writes beside a session, never into it: ``<SESSION>_calibrated``.
 CALIBRATED_SUFFIX = "_calibrated"
+#: And the fit of its cube: ``<SESSION>_reconstruction``.
+RECONSTRUCTION_SUFFIX = "_reconstruction"
 _HEADER_ATTRIBUTE = "skinlayers_cube"
 #: Two bands' centres (or a channel's name and the header) agree within this.
 _SAME_NM = 1e-3
@@ -65,6 +68,12 @@ def calibrated_dir(session: str | Path) -> Path:
     """Where a session's calibration goes by default: ``<session>_calibrated`` beside it."""
     session = Path(session).resolve()
     return session.parent / f"{session.name}{CALIBRATED_SUFFIX}"
+
+
+def reconstruction_dir(session: str | Path) -> Path:
+    """Where a session's fit goes by default: ``<session>_reconstruction`` beside it."""
+    session = Path(session).resolve()
+    return session.parent / f"{session.name}{RECONSTRUCTION_SUFFIX}"
 
 
 class Provenance(Strict):

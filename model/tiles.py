@@ -155,7 +155,7 @@ def render_tiled(renderer: SkinRenderer, maps: SkinMaps, light: Light, wavelengt
     b, h, w = maps.shape
     wl = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
     cut = list(tiles(h, w, tile_px, halo_px))
-    terms = max(renderer.series_terms_for(_crop(maps, t), wl) for t in cut)  # the whole maps' worst pixel
+    terms = max(renderer.series_terms_for(_crop(maps, t), wl) for t in tiles(h, w, tile_px, 0))  # the whole maps' worst pixel
     out = torch.empty(b, wl.numel(), h, w, dtype=torch.float32)
     step = bands_per_pass or wl.numel()
     for k, t in enumerate(cut):

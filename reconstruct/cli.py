@@ -11,7 +11,7 @@ from typing import Optional
 import torch
 import typer
 
-from ..formats.cube import CUBE_NAME, calibrated_dir
+from ..formats.cube import CUBE_NAME, calibrated_dir, reconstruction_dir
 from ..formats.errors import InputError
 from ..formats.outputs import check_outputs, write_file
 from ..model import PARAMETER_NAMES, SkinModel, load_model_settings
@@ -260,8 +260,7 @@ def default_reconstruction_dir(source: Path, cube_path: Path) -> Path:
     """``<SESSION>_reconstruction`` beside a session folder (the session is never written to), else
     ``reconstruction/`` beside the cube."""
     if source.is_dir() and not (source / CUBE_NAME).is_file():
-        resolved = source.resolve()
-        return resolved.parent / f"{resolved.name}_reconstruction"
+        return reconstruction_dir(source)
     return cube_path.parent / "reconstruction"
 
 

@@ -46,7 +46,19 @@ from .grids import MapLayout
 from .least_squares import reverse_jacobian
 from .unknowns import Level, extend, extension_index, params_of_rows, to_params
 
-__all__ = ["Evaluation", "HomogeneousProblem", "LevelProblem", "OptimResult", "RenderCounter"]
+__all__ = ["BAND_WEIGHTS", "Evaluation", "HomogeneousProblem", "LevelProblem", "OptimResult", "RenderCounter", "band_nodes"]
+
+#: The fit's quadrature of a band's Gaussian filter: weights of the nodes at its centre and at ∓√3 σ
+#: (three-node Gauss–Hermite, exact for polynomials of degree < 6).
+BAND_WEIGHTS = (2.0 / 3.0, 1.0 / 6.0, 1.0 / 6.0)
+
+
+def band_nodes(wavelength_nm: torch.Tensor, fwhm_nm: torch.Tensor) -> torch.Tensor:
+    """The quadrature's nodes ``(L, 3)`` in nm of bands centred at ``wavelength_nm`` ``(L,)`` with
+    Gaussian filters of ``fwhm_nm`` ``(L,)``: the centre, centre − √3 σ, centre + √3 σ."""
+    sigma = fwhm_nm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+    offsets = torch.stack([torch.zeros_like(sigma), -math.sqrt(3.0) * sigma, math.sqrt(3.0) * sigma], dim=1)  # (L, 3)
+    return wavelength_nm[:, None] + offsets
 
 
 @dataclass
@@ -143,10 +155,8 @@ class LevelProblem:
         self.band_nodes_nm = None
         fwhm = torch.as_tensor(band_fwhm_nm, dtype=torch.float64).expand(self.wavelength_nm.shape)
         if bool((fwhm > 0).any()):  # a band of width 0 is a line: its three nodes coincide
-            sigma = fwhm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-            offsets = torch.stack([torch.zeros_like(sigma), -math.sqrt(3.0) * sigma, math.sqrt(3.0) * sigma], dim=1)  # (L, 3)
-            self.band_nodes_nm = (self.wavelength_nm[:, None] + offsets).reshape(-1)
-            self.band_weights = torch.tensor([2.0 / 3.0, 1.0 / 6.0, 1.0 / 6.0], dtype=torch.float64)
+            self.band_nodes_nm = band_nodes(self.wavelength_nm, fwhm).reshape(-1)
+            self.band_weights = torch.tensor(BAND_WEIGHTS, dtype=torch.float64)
 
     @property
     def row_weight(self) -> torch.Tensor:

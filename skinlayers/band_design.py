@@ -61,9 +61,6 @@ PRIOR_SEED = 20
 #: Combinations above which the exchange algorithm replaces the exhaustive search.
 EXHAUSTIVE_LIMIT = 200_000
 EXCHANGE_STARTS = 12
-#: The fit's band quadrature (``reconstruct/problem.py``): offsets in σ of the band, weights.
-BAND_NODES = ((0.0, 2.0 / 3.0), (-math.sqrt(3.0), 1.0 / 6.0), (math.sqrt(3.0), 1.0 / 6.0))
-FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 #: The criteria (``Criterion``), in the words ``design.json`` and the chart use.
 CRITERION_WORDS = {
     "rig": "the worst map's expected bound (mean over the prior of log(1 + CRB/target²); C_m, β_m, C_he, C_hd in the "
@@ -212,14 +209,14 @@ def band_jacobian(skins: torch.Tensor, filters: Sequence[Filter], view_angle_deg
     from .model.params import SkinParams  # noqa: PLC0415
     from .model.radiometry import exit_factor  # noqa: PLC0415
     from .model.settings import ModelSettings  # noqa: PLC0415
+    from .reconstruct.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
 
     model = SkinModel(ModelSettings())
     o = model.settings.optics
     exit = exit_factor(o.n_epidermis, o.n_above, math.cos(math.radians(view_angle_deg)))
-    centres = torch.tensor([f.centre_nm for f in filters], dtype=torch.float64)
-    sigmas = torch.tensor([f.fwhm_nm * FWHM_TO_SIGMA for f in filters], dtype=torch.float64)
-    nodes = torch.stack([centres + k * sigmas for k, _ in BAND_NODES], dim=1)  # (F, 3)
-    weights = torch.tensor([w for _, w in BAND_NODES], dtype=torch.float64)
+    nodes = band_nodes(torch.tensor([f.centre_nm for f in filters], dtype=torch.float64),
+                       torch.tensor([f.fwhm_nm for f in filters], dtype=torch.float64))  # (F, 3)
+    weights = torch.tensor(BAND_WEIGHTS, dtype=torch.float64)
     u = _to_u(skins).requires_grad_(True)
     reflectance = model.diffuse_reflectance(SkinParams.from_tensor(_from_u(u)), nodes.reshape(-1)).reshape(len(skins), len(filters), 3)
     band = exit * (reflectance * weights).sum(-1)  # (M, F)

@@ -40,8 +40,10 @@ from typing import Callable, Optional, Sequence
 
 import typer
 
+from .formats.cube import reconstruction_dir
 from .formats.errors import InputError
 from .formats.files import atomic_write
+from .study import is_map_column, session_summary, study_record, without_nan, write_study_json, write_study_table
 
 __all__ = ["BatchOptions", "BatchResult", "SessionOutcome", "StudySession", "default_study_out", "process_session",
            "read_study", "run_batch", "study_rows", "write_study"]
@@ -59,7 +61,6 @@ DEVICES = ("cpu", "cuda", "auto")
 #: every tensor temporary is then mapped and unmapped anew, and the fit slows down (docs/batch.md,
 #: "Workers started outside skinlayers"). Unset for our workers.
 WORKER_ENVIRON = {"MALLOC_TRIM_THRESHOLD_": None}
-RECONSTRUCTION_SUFFIX = "_reconstruction"
 #: Torch threads of each task: one per worker process, one worker per core (formats/threads.py says why).
 TASK_THREADS = 1
 
@@ -134,7 +135,7 @@ def _sessions_of_csv(path: Path) -> list[StudySession]:
         raise InputError(f"{path}: not a readable CSV study list ({exc})") from None
     if not rows or "session" not in columns:
         raise InputError(f"{path}: a study list needs a header with a 'session' column and one row per session")
-    clashing = sorted({c for c in columns if columns.count(c) > 1} | {c for c in columns if c in RESERVED_COLUMNS or _is_map_column(c)})
+    clashing = sorted({c for c in columns if columns.count(c) > 1} | {c for c in columns if c in RESERVED_COLUMNS or is_map_column(c)})
     if clashing:
         raise InputError(f"{path}: column(s) {', '.join(clashing)} repeated or reserved for the study table; rename them")
     sessions, seen = [], set()
@@ -150,18 +151,6 @@ def _sessions_of_csv(path: Path) -> list[StudySession]:
     return sessions
 
 
-def _is_map_column(column: str) -> bool:
-    from .study import MAPS, STATS  # noqa: PLC0415
-
-    return any(column == f"{n}_{s}" for n in MAPS for s in STATS)
-
-
-def reconstruction_dir(session: Path) -> Path:
-    """Where a session's fit goes, as ``skinlayers reconstruct SESSION`` puts it: ``<SESSION>_reconstruction``."""
-    session = Path(session).resolve()
-    return session.parent / f"{session.name}{RECONSTRUCTION_SUFFIX}"
-
-
 def process_session(session: StudySession, options: BatchOptions) -> SessionOutcome:
     """One task: the session's missing steps, then its row of the study table. Never raises for the
     session's own faults: they are the outcome's ``error``."""
@@ -173,11 +162,9 @@ def process_session(session: StudySession, options: BatchOptions) -> SessionOutc
         outcome.ran = _run_steps(session.path, options)
         outcome.status = "done" if outcome.ran else "skipped"
         if (reconstruction_dir(session.path) / "fit.json").is_file():
-            from .study import session_summary  # noqa: PLC0415
-
             outcome.summary = session_summary(reconstruction_dir(session.path))
     except Exception as exc:  # noqa: BLE001 (any fault of one session is its outcome, not the study's end)
-        outcome.status, outcome.error = "failed", " ".join(f"{type(exc).__name__}: {exc}".split())
+        outcome.status, outcome.error = "failed", _one_line(exc)
         if not isinstance(exc, (InputError, OSError)):
             outcome.detail = traceback.format_exc()
     outcome.seconds = time.perf_counter() - start
@@ -265,8 +252,6 @@ class _Ledger:
             pass
 
     def record(self, outcome: SessionOutcome) -> None:
-        from .study import without_nan  # noqa: PLC0415
-
         self.outcomes[outcome.session] = outcome
         self.entries[outcome.session] = without_nan(asdict(outcome))
         atomic_write(self.path, (json.dumps({"sessions": self.entries}, indent=1, default=str) + "\n").encode())
@@ -302,7 +287,12 @@ def _outcome_of(future, session: StudySession) -> SessionOutcome:
     try:
         return future.result()
     except Exception as exc:  # noqa: BLE001 (KilledWorker, a worker that cannot unpickle: the session failed)
-        return SessionOutcome(session.name, "failed", error=" ".join(f"{type(exc).__name__}: {exc}".split()))
+        return SessionOutcome(session.name, "failed", error=_one_line(exc))
+
+
+def _one_line(exc: BaseException) -> str:
+    """An error as one line: its kind and its message, whitespace folded."""
+    return " ".join(f"{type(exc).__name__}: {exc}".split())
 
 
 def default_workers(device: str = "auto") -> int:
@@ -373,8 +363,6 @@ def study_rows(sessions: Sequence[StudySession], outcomes: dict[str, SessionOutc
 def write_study(out: str | Path, sessions: Sequence[StudySession], outcomes: dict[str, SessionOutcome],
                 group_by: Sequence[str] = (), figures: bool = True) -> dict[str, Path]:
     """``study.csv``, ``study.json`` and (``figures``) the study's figures in ``out``; their paths by kind."""
-    from .study import study_record, write_study_json, write_study_table  # noqa: PLC0415
-
     out = Path(out)
     rows = study_rows(sessions, outcomes)
     record = study_record(rows, group_by)

@@ -32,7 +32,7 @@ import numpy as np
 from .formats.files import atomic_write
 
 __all__ = ["MAPS", "STATS", "TRIM", "correlations", "grouping_columns", "group_statistics", "principal_components",
-           "reconstructed", "session_summary", "study_record", "trimmed_mean", "visit_changes", "without_nan", "write_study_json",
+           "is_map_column", "reconstructed", "session_summary", "study_record", "trimmed_mean", "visit_changes", "without_nan", "write_study_json",
            "write_study_table"]
 
 MAPS = ("C_m", "beta_m", "C_he", "C_bc", "C_hd")
@@ -86,7 +86,7 @@ def session_summary(reconstruction: str | Path) -> dict[str, float]:
 def grouping_columns(rows: Sequence[dict], asked: Sequence[str] = ()) -> list[str]:
     """The columns the study is grouped by: ``asked`` (each must be a column), else every column that is
     not an identity or a map's and puts at least two sessions together without putting all in one."""
-    columns = [c for c in (rows[0] if rows else {}) if c not in IDENTITY_COLUMNS and not _is_map_column(c)]
+    columns = [c for c in (rows[0] if rows else {}) if c not in IDENTITY_COLUMNS and not is_map_column(c)]
     if asked:
         missing = [c for c in asked if c not in columns]
         if missing:
@@ -187,7 +187,7 @@ def write_study_table(path: str | Path, rows: Sequence[dict]) -> Path:
     """``study.csv``: one row per session, its columns first and then the maps' statistics (atomic)."""
     columns: list[str] = []
     for r in rows:
-        columns += [c for c in r if c not in columns and not _is_map_column(c)]
+        columns += [c for c in r if c not in columns and not is_map_column(c)]
     columns += [f"{n}_{s}" for n in MAPS for s in STATS]
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore")
@@ -202,7 +202,8 @@ def write_study_json(path: str | Path, record: dict) -> Path:
     return atomic_write(path, (json.dumps(without_nan(record), indent=1) + "\n").encode())
 
 
-def _is_map_column(column: str) -> bool:
+def is_map_column(column: str) -> bool:
+    """Whether ``column`` is one of the table's map statistics (``<map>_<stat>``)."""
     return any(column == f"{n}_{s}" for n in MAPS for s in STATS)
 
 
