@@ -26,7 +26,7 @@ import torch
 from .errors import InputError
 
 __all__ = ["THREADS_ENV", "THREADS_HELP", "ThreadChoice", "choose_threads", "command_threads", "idle_cpus",
-           "library_threads", "threads_from_env", "usable_cpus", "use_threads"]
+           "library_threads", "usable_cpus", "use_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +36,8 @@ THREADS_ENV = "SKINLAYERS_THREADS"
 SAMPLE_S = 0.2
 #: A core counts as free when at least this share of it was idle over the sample.
 IDLE_SHARE = 0.5
+#: The choice this process applied last (``use_threads``), None before any.
+_applied: "ThreadChoice | None" = None
 
 
 @dataclass(frozen=True)
@@ -142,14 +144,11 @@ def choose_threads(requested: int | str | None = None) -> ThreadChoice:
     return ThreadChoice(n, cpus, free, f"{int(free)} of {cpus} usable core(s) idle")
 
 
-def threads_from_env() -> ThreadChoice | None:
-    """The library's choice: the policy when ``SKINLAYERS_THREADS`` is set, else None (torch's setting
-    stays as the caller made it)."""
-    return choose_threads() if os.environ.get(THREADS_ENV) is not None else None
-
-
 def use_threads(choice: ThreadChoice) -> ThreadChoice:
-    """Give torch (and OpenCV, when loaded) the chosen number of threads."""
+    """Give torch (and OpenCV, when loaded) the chosen number of threads; the process keeps the choice
+    (``library_threads`` then leaves it as it is)."""
+    global _applied
+    _applied = choice
     torch.set_num_threads(choice.threads)
     cv2 = sys.modules.get("cv2")
     if cv2 is not None:
@@ -171,7 +170,9 @@ def command_threads(requested: str | None) -> ThreadChoice:
 
 
 def library_threads() -> ThreadChoice | None:
-    """At a library entry point (``fit_cube``, ``calibrate_session``): the policy applied when
-    ``SKINLAYERS_THREADS`` is set; otherwise nothing changes."""
-    choice = threads_from_env()
-    return use_threads(choice) if choice is not None else None
+    """At a library entry point (``fit_cube``, ``calibrate_session``): where ``SKINLAYERS_THREADS`` is set,
+    the choice already made in this process (a command's ``--threads``, a batch task's), else the policy
+    applied now; where it is not set, nothing changes (torch's setting stays as the caller made it)."""
+    if os.environ.get(THREADS_ENV) is None:
+        return None
+    return _applied if _applied is not None else use_threads(choose_threads())

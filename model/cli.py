@@ -425,7 +425,7 @@ def _memory_plan(maps_file: Path, light, wl: torch.Tensor, settings: ModelSettin
     """Whole or in tiles, from the maps' header alone (``model/tiles.py``); refused here, before any large
     allocation, when not even tiles fit the memory budget. None for the Monte Carlo (it renders pixels
     in batches of its own)."""
-    from ..formats.exr import read_exr_header  # noqa: PLC0415
+    from ..formats.exr import float_attribute, read_exr_header  # noqa: PLC0415
     from ..formats.maps import MapsError  # noqa: PLC0415
     from .renderer import SkinRenderer  # noqa: PLC0415
     from ..formats.resources import memory_budget_bytes  # noqa: PLC0415
@@ -436,7 +436,7 @@ def _memory_plan(maps_file: Path, light, wl: torch.Tensor, settings: ModelSettin
     if physics == "transport":
         return None
     height, width, header = read_exr_header(maps_file, MapsError)
-    mm = float(header.get("mm_per_pixel", 0.0) or 0.0)
+    mm = float_attribute(header, "mm_per_pixel", maps_file, MapsError)
     if not mm > 0:
         return None  # the maps' reader refuses it, naming the attribute
     renderer = SkinRenderer(settings)

@@ -69,11 +69,23 @@ def test_a_core_kept_busy_is_not_counted_idle():
 
 
 def test_the_library_follows_the_environment_only_where_it_is_set(monkeypatch, torch_threads):
+    from skinlayers.formats import threads
+
+    monkeypatch.setattr(threads, "_applied", None)
     torch.set_num_threads(1)
     monkeypatch.delenv(THREADS_ENV, raising=False)
     assert library_threads() is None and torch.get_num_threads() == 1
     monkeypatch.setenv(THREADS_ENV, "2")
     assert library_threads().threads == 2 and torch.get_num_threads() == 2
+
+
+def test_a_commands_threads_win_over_the_environment_in_the_library(monkeypatch, torch_threads):
+    from skinlayers.formats import threads
+
+    monkeypatch.setattr(threads, "_applied", None)  # restored after the test
+    monkeypatch.setenv(THREADS_ENV, "2")
+    threads.use_threads(choose_threads(1))  # what `--threads 1` does before the command calls the library
+    assert library_threads().threads == 1 and torch.get_num_threads() == 1
 
 
 def test_commands_refuse_bad_counts_in_one_line(run_cli, tmp_path, torch_threads):
