@@ -15,14 +15,19 @@ parameters". Here the same search, stated:
 - **What is fitted** (``band_jacobian``): the fit's band model, homogeneous skin per pixel
   (``reconstruct/problem.py``: the multipole reflectance at each band's three nodes, weights 2/3, 1/6,
   1/6, times the camera's exit factor), differentiated in log C_m, β_m, log C_he, log C_bc, log C_hd.
+- **The model's error** (``band_discrepancy``, on by default): what the fit's renderer misses of the
+  skin it fits (variation within a pixel, the simulator's finer grid and quadrature), measured per filter
+  by rendering the demo's scene both ways on a patch of the rig's pixel size. Its spread from pixel to
+  pixel counts as noise in quadrature (shared maps average it as they average noise); its mean is the
+  same in every pixel, and no sharing averages it: it enters as the bias of the fit's own estimator
+  (unweighted least squares, every map free, ``FilterTerms``).
 - **The criterion** (``Criterion``): per skin of the prior, the Cramér–Rao bound of each map in the
   fit's layout (``bound_variance``: C_m and C_he per pixel; C_hd, β_m and C_bc on their default grids,
-  each value shared by the pixels of its cell, ``shared_pixels``); per scored map (``MAP_TARGETS``: C_m,
-  C_he, C_hd relative, β_m absolute; C_bc has no target) its expected log(1 + variance/target²) over the
-  prior. ``rig`` (the default): the worst map's expected bound over the same for the rig's own bands —
-  below 1, every map improves on the rig (a minimax relative efficiency); ``targets``: the maps'
-  expected bounds summed (A-optimal, target-weighted). The heterogeneous renderer's cross-talk between
-  neighbouring pixels is not in the bound.
+  each value shared by the pixels of its cell, ``shared_pixels``) plus the model's bias squared; per
+  scored map (``MAP_TARGETS``: C_m, C_he, C_hd relative, β_m absolute; C_bc has no target) its expected
+  log(1 + variance/target²) over the prior. ``rig`` (the default): the worst map's expected error over
+  the same for the rig's own bands — below 1, every map improves on the rig (a minimax relative
+  efficiency); ``targets``: the maps' expected errors summed (A-optimal, target-weighted).
 - **The prior** (``prior_skins``): each row of DWRR08's Table 2, each chromophore spread as the demo
   scene spreads it (log-normal, ``SPREAD``), ``PRIOR_SAMPLES`` skins a row, from a fixed seed.
 - **The search** (``search``): every combination where there are at most ``EXHAUSTIVE_LIMIT``; beyond,
@@ -46,8 +51,9 @@ import typer
 
 from .formats.errors import InputError
 
-__all__ = ["CATALOGUE_DEFAULT", "CRITERIA", "BandDesign", "Criterion", "Filter", "Radiometry", "band_jacobian", "bound_variance",
-           "default_catalogue", "design_bands", "exchange_search", "exhaustive_search", "filter_information", "prior_skins",
+__all__ = ["CATALOGUE_DEFAULT", "CRITERIA", "BandDesign", "Criterion", "Filter", "FilterTerms", "Radiometry", "band_jacobian",
+           "bound_variance", "default_catalogue", "design_bands", "exchange_search", "exhaustive_search", "filter_information",
+           "filter_terms", "prior_skins",
            "read_catalogue", "search", "shared_pixels", "write_design"]
 
 #: The default catalogue: 10-nm filters every 10 nm over 400–720 nm (centre, FWHM in nm).
@@ -63,10 +69,10 @@ EXHAUSTIVE_LIMIT = 200_000
 EXCHANGE_STARTS = 12
 #: The criteria (``Criterion``), in the words ``design.json`` and the chart use.
 CRITERION_WORDS = {
-    "rig": "the worst map's expected bound (mean over the prior of log(1 + CRB/target²); C_m, β_m, C_he, C_hd in the "
-           "fit's layout) over the same for the rig's own bands: below 1, every map improves on the rig",
-    "targets": "A-optimal: the maps' expected bounds (mean over the prior of log(1 + CRB/target²); C_m, β_m, C_he, C_hd "
-               "in the fit's layout) summed",
+    "rig": "the worst map's expected error (mean over the prior of log(1 + (CRB + model bias²)/target²); C_m, β_m, C_he, "
+           "C_hd in the fit's layout) over the same for the rig's own bands: below 1, every map improves on the rig",
+    "targets": "A-optimal: the maps' expected errors (mean over the prior of log(1 + (CRB + model bias²)/target²); C_m, β_m, "
+               "C_he, C_hd in the fit's layout) summed",
 }
 CRITERIA = tuple(CRITERION_WORDS)
 #: Counts the chart of the bound against N spans: one band per parameter and the scale, to a full wheel.
@@ -235,12 +241,39 @@ def _from_u(u: torch.Tensor) -> torch.Tensor:
     return torch.cat([p[:, :1], u[:, 1:2], p[:, 2:]], dim=1)
 
 
-def filter_information(radiometry: Radiometry, skins: torch.Tensor, filters: Sequence[Filter]) -> torch.Tensor:
-    """Each filter's Fisher information on each skin, ``(F, M, 5, 5)``: J Jᵀ / σ², σ the calibrated
-    reflectance's noise at that skin's band reflectance."""
+@dataclass(frozen=True)
+class FilterTerms:
+    """Each filter's share of a set's bound on each skin of the prior: the Fisher information ``(F, M, 5, 5)``
+    (J Jᵀ / σ², σ the calibrated reflectance's noise, and the model's spread beside it), and for the
+    model's systematic error, the fit's normal matrix J Jᵀ ``(F, M, 5, 5)`` and J b ``(F, M, 5)`` (b the
+    error) — the fit weighs its bands alike (``reconstruct/problem.py``), so its bias is
+    (Σ J Jᵀ)⁻¹ Σ J b over the set's filters. None: the model's error left out."""
+
+    information: torch.Tensor
+    normal: torch.Tensor | None = None
+    projected: torch.Tensor | None = None
+
+
+def filter_terms(radiometry: Radiometry, skins: torch.Tensor, filters: Sequence[Filter], model_error=None) -> FilterTerms:
+    """``FilterTerms`` of ``filters`` on ``skins``; ``model_error`` (a ``band_discrepancy.Discrepancy`` that
+    measured every filter, or None) adds the model's error: its spread, relative to the skin's band
+    reflectance, as noise in quadrature; its mean as the bias of every pixel."""
     band, jac = band_jacobian(skins, filters, radiometry.rig.camera.angle_deg)
     sd = torch.stack([radiometry.reflectance_sd(f, band[:, j]) for j, f in enumerate(filters)], dim=1)  # (M, F)
-    weighted = jac / sd[..., None]
+    if model_error is None:
+        return FilterTerms(_outer(jac / sd[..., None]))
+    bias_rel, spread_rel = model_error.at(filters)
+    sd = torch.sqrt(sd**2 + (spread_rel * band) ** 2)
+    return FilterTerms(_outer(jac / sd[..., None]), _outer(jac), torch.einsum("mfi,mf->fmi", jac, bias_rel * band))
+
+
+def filter_information(radiometry: Radiometry, skins: torch.Tensor, filters: Sequence[Filter]) -> torch.Tensor:
+    """Each filter's Fisher information on each skin from the camera's noise alone, ``(F, M, 5, 5)``."""
+    return filter_terms(radiometry, skins, filters).information
+
+
+def _outer(weighted: torch.Tensor) -> torch.Tensor:
+    """``(M, F, 5)`` → per filter and skin the outer product ``(F, M, 5, 5)``."""
     return torch.einsum("mfi,mfj->fmij", weighted, weighted)
 
 
@@ -282,29 +315,40 @@ def bound_variance(fisher: torch.Tensor, shared: torch.Tensor) -> torch.Tensor:
 
 class Criterion:
     """A set of filters' score, lower is better. Each scored map's (``MAP_TARGETS``: C_m, β_m, C_he, C_hd;
-    C_bc has none) expected bound is the mean over the prior of log(1 + variance/target²): the variance
-    over the target squared where it is small, and a skin on which a map cannot be determined (C_m of
-    the palest Table 2 row, 0.013%) counts as one bad skin, not as the whole prior."""
+    C_bc has none) expected error is the mean over the prior of log(1 + variance/target²), the variance
+    the bound's (``bound_variance``) plus the model's bias squared where ``information`` holds it
+    (``FilterTerms``): the variance over the target squared where it is small, and a skin on which a map
+    cannot be determined (C_m of the palest Table 2 row, 0.013%) counts as one bad skin, not as the whole
+    prior."""
 
-    def __init__(self, information: torch.Tensor, shared: torch.Tensor, kind: str = "rig", reference: Sequence[int] | None = None,
-                 candidates: int | None = None):
+    def __init__(self, information: torch.Tensor | FilterTerms, shared: torch.Tensor, kind: str = "rig",
+                 reference: Sequence[int] | None = None, candidates: int | None = None):
         from .reconstruct.checks import MAP_TARGETS  # noqa: PLC0415
 
         if kind not in CRITERIA or (kind == "rig" and reference is None):
             raise ValueError(f"criterion {kind!r}: one of {CRITERIA}; 'rig' needs the reference set")
-        self.information, self.shared, self.kind = information, shared, kind
+        self.terms = information if isinstance(information, FilterTerms) else FilterTerms(information)
+        self.information, self.shared, self.kind = self.terms.information, shared, kind
         #: the filters a search may choose: the first ``candidates`` (the catalogue; comparison sets after it)
-        self.candidates = candidates or information.shape[0]
+        self.candidates = candidates or self.information.shape[0]
         self.maps = [PARAMETERS.index(n) for n in MAP_TARGETS]
-        self.targets = torch.tensor(list(MAP_TARGETS.values()), dtype=information.dtype)
+        self.targets = torch.tensor(list(MAP_TARGETS.values()), dtype=self.information.dtype)
         self.reference = self.expected(reference)[0] if reference is not None else None
 
-    def expected(self, chosen) -> torch.Tensor:
-        """Each scored map's expected bound ``(B, maps)`` of sets ``(n,)`` or ``(B, n)``."""
+    def variance(self, chosen) -> torch.Tensor:
+        """The expected squared error ``(B, M, 5)`` of each parameter on each skin for sets ``(n,)`` or ``(B, n)``."""
         index = torch.as_tensor(chosen, dtype=torch.long)
         batch = index.reshape(-1, index.shape[-1])
         variance = bound_variance(self.information[batch].sum(dim=1), self.shared).clamp_min(0)  # (B, M, 5)
-        return torch.log1p(variance[..., self.maps] / self.targets**2).mean(dim=1)
+        if self.terms.normal is not None:
+            normal = self.terms.normal[batch].sum(dim=1) + 1e-12 * torch.eye(len(PARAMETERS), dtype=variance.dtype)
+            bias = torch.linalg.solve(normal, self.terms.projected[batch].sum(dim=1)[..., None])[..., 0]
+            variance = variance + bias**2
+        return variance
+
+    def expected(self, chosen) -> torch.Tensor:
+        """Each scored map's expected error ``(B, maps)`` of sets ``(n,)`` or ``(B, n)``."""
+        return torch.log1p(self.variance(chosen)[..., self.maps] / self.targets**2).mean(dim=1)
 
     def __call__(self, chosen) -> torch.Tensor:
         """The scores ``(B,)`` (a scalar for one set)."""
@@ -313,11 +357,10 @@ class Criterion:
         score = torch.nan_to_num(score, nan=math.inf)  # a set whose bound cannot be computed is never chosen
         return score.reshape(torch.as_tensor(chosen).shape[:-1])
 
-
-def crb_per_parameter(information: torch.Tensor, chosen: Sequence[int], shared: torch.Tensor) -> dict[str, float]:
-    """The bound's median σ per parameter over the prior (relative for the chromophores: σ of log C)."""
-    variance = bound_variance(information[torch.as_tensor(list(chosen))].sum(0), shared)
-    return {n: float(variance[:, i].clamp_min(0).sqrt().median()) for i, n in enumerate(PARAMETERS)}
+    def median_sd(self, chosen: Sequence[int]) -> dict[str, float]:
+        """The expected error's median σ per parameter over the prior (relative for the chromophores: σ of log C)."""
+        variance = self.variance(list(chosen))[0]
+        return {n: float(variance[:, i].sqrt().median()) for i, n in enumerate(PARAMETERS)}
 
 
 @dataclass(frozen=True)
@@ -392,29 +435,36 @@ class BandDesign:
     scores: dict[str, float]
     by_count: dict[int, float]
     seconds: float
+    model_error: object | None = None  # the ``band_discrepancy.Discrepancy`` the criterion used, None: noise alone
 
 
-def design_bands(catalogue: Sequence[Filter], count: int, rig=None, kind: str = "rig") -> BandDesign:
+def design_bands(catalogue: Sequence[Filter], count: int, rig=None, kind: str = "rig", *, model_error: bool = True,
+                 say=None) -> BandDesign:
     """Search the catalogue for ``count`` filters by the criterion ``kind`` (the module docstring), compare
-    with the rig's own bands and evenly spaced ones, and chart the best score against the count."""
+    with the rig's own bands and evenly spaced ones, and chart the best score against the count.
+    ``model_error``: the fit's model error beside the noise (``band_discrepancy``; measured once per rig
+    pixel size and catalogue, minutes, then cached; ``say`` announces it)."""
+    from .band_discrepancy import discrepancy  # noqa: PLC0415
+
     start = time.perf_counter()
     radiometry = Radiometry(rig)
     lo, hi = min(f.centre_nm for f in catalogue), max(f.centre_nm for f in catalogue)
     compared = {"current rig": [Filter(b.wavelength_nm, b.fwhm_nm) for b in radiometry.rig.bands],
                 "evenly spaced": [Filter(float(c), catalogue[0].fwhm_nm) for c in np.linspace(lo, hi, count)]}
     every = [*catalogue, *compared["current rig"], *compared["evenly spaced"]]
-    information = filter_information(radiometry, prior_skins(), every)
-    shared = shared_pixels(radiometry.rig)
+    error = discrepancy(radiometry.rig, list(dict.fromkeys(every)), simulation=radiometry.settings, say=say) if model_error else None
+    terms = filter_terms(radiometry, prior_skins(), every, error)
     n, r = len(catalogue), len(compared["current rig"])
     sets = {"current rig": list(range(n, n + r)), "evenly spaced": list(range(n + r, len(every)))}
-    criterion = Criterion(information, shared, kind, sets["current rig"], candidates=n)
+    criterion = Criterion(terms, shared_pixels(radiometry.rig), kind, sets["current rig"], candidates=n)
     found = search(criterion, count)
     sets = {"chosen": list(found.chosen), **sets}
-    bounds = {name: crb_per_parameter(information, chosen, shared) for name, chosen in sets.items()}
+    bounds = {name: criterion.median_sd(chosen) for name, chosen in sets.items()}
     scores = {name: float(criterion(chosen)) for name, chosen in sets.items()}
     by_count = {k: found.score if k == count else search(criterion, k).score for k in CHART_COUNTS if k <= n}
     chosen = [catalogue[i] for i in found.chosen]
-    return BandDesign(chosen, [radiometry.iso(f) for f in chosen], kind, found, bounds, scores, by_count, time.perf_counter() - start)
+    return BandDesign(chosen, [radiometry.iso(f) for f in chosen], kind, found, bounds, scores, by_count, time.perf_counter() - start,
+                      error)
 
 
 #: What ``design-bands`` writes; ``design.json`` last (its presence says the rest is there).
@@ -444,8 +494,10 @@ def write_design(design: BandDesign, out: Path, rig=None, *, force: bool = False
         "criterion": {"kind": design.criterion, "meaning": CRITERION_WORDS[design.criterion]},
         "chosen": [{"centre_nm": f.centre_nm, "fwhm_nm": f.fwhm_nm, "iso": iso} for f, iso in zip(design.chosen, design.isos)],
         "search": {"method": design.search.method, "sets_scored": design.search.evaluated, "seconds": round(design.search.seconds, 2)},
-        "score": design.scores, "crb_median_sd": design.bounds,
+        "score": design.scores, "median_expected_sd": design.bounds,
         "best_score_by_count": {str(n): s for n, s in design.by_count.items()}, "seconds": round(design.seconds, 1),
+        "model_error": None if design.model_error is None else {
+            k: getattr(design.model_error, k) for k in ("patch_px", "mm_per_pixel", "seed", "seconds")},
     }
     with claim_outputs(out, PRODUCTS, force=force, marker="design.json", what="band design") as staging:
         atomic_write(staging.path("rig.yaml"), ("# skinlayers design-bands: the rig with the chosen bands\n" + rig_text).encode())
@@ -471,8 +523,9 @@ def _chart(design: BandDesign, rig_bands: int, path: Path) -> Path:
     for name, marker, bands in (("chosen", "*", n), ("current rig", "s", rig_bands), ("evenly spaced", "^", n)):
         ax.plot([bands], [design.scores[name]], marker, ms=9, label=f"{name} ({bands} bands)")
     ax.set_xlabel("bands (N)")
-    ax.set_ylabel("worst map's bound / the rig's" if design.criterion == "rig" else "Σ maps' expected log(1 + CRB/target²)")
-    ax.set_title("Cramér–Rao bound of the fit against the number of filters")
+    ax.set_ylabel("worst map's expected error / the rig's" if design.criterion == "rig" else "Σ maps' expected error")
+    ax.set_title("Expected error of the fit (noise bound" + (" + model error)" if design.model_error is not None else ")")
+                 + " against the number of filters", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
     buffer = io.BytesIO()
@@ -490,8 +543,10 @@ def design_bands_cli(
                                                              "targets: A-optimal, each map over its target."),
     out: Path = typer.Option(Path("design-bands"), "-o", "--out", help="Folder for design.json, rig.yaml and the chart."),
     force: bool = typer.Option(False, "--force", help="Replace an earlier design in the output folder."),
+    model_error: bool = typer.Option(True, "--model-error/--noise-only", help="Weigh the fit's model error beside the "
+                                     "camera's noise (measured by rendering once per rig and catalogue, minutes; cached)."),
 ) -> None:
-    """Choose the rig's filters from a catalogue by the Cramér–Rao bound of the fit (DWRR08 §5).
+    """Choose the rig's filters from a catalogue by the fit's expected error: its Cramér–Rao bound and its model's error (DWRR08 §5).
 
     Example: skinlayers design-bands                 (9 of the default catalogue: 10-nm filters, 400–720 nm)
              skinlayers design-bands --catalog my_filters.csv --count 8 -o my_design
@@ -508,14 +563,14 @@ def design_bands_cli(
     if not 1 <= count <= most:
         raise InputError(f"--count {count}: choose 1 to {most} (the wheel's filters beside its dark slot, the catalogue's filters)")
     check_outputs(out, PRODUCTS, force=force, what="band design")  # refused before the search
-    design = design_bands(catalogue, count, rig, criterion)
+    design = design_bands(catalogue, count, rig, criterion, model_error=model_error, say=typer.echo)
     paths = write_design(design, out, rig, force=force)
     typer.echo("chosen: " + ", ".join(f"{f.centre_nm:g} nm (ISO {iso})" for f, iso in zip(design.chosen, design.isos)))
     typer.echo(f"search: {design.search.method}, {design.search.evaluated} sets in {design.search.seconds:.1f} s; "
                f"all of it {design.seconds:.0f} s")
     for name in COMPARISONS:
         sd = ", ".join(f"{k} {100 * v:.1f}%" for k, v in design.bounds[name].items())
-        typer.echo(f"{name:>14}: score {design.scores[name]:.3g}; median σ {sd}")
+        typer.echo(f"{name:>14}: score {design.scores[name]:.3g}; median expected error {sd}")
     for kind, path in paths.items():
         typer.echo(f"{kind}: {path}")
 

@@ -85,6 +85,59 @@ def test_the_exchange_agrees_with_the_exhaustive_search_on_random_catalogues():
         assert found.chosen == exact.chosen and found.score == pytest.approx(exact.score)
 
 
+def test_the_model_errors_bias_is_the_fits_least_squares_answer_to_it():
+    """With the noise negligible, a set's expected error is the square of the unweighted least-squares fit
+    of the linear model to the model's error alone (the fit weighs its bands alike)."""
+    from skinlayers.band_design import Criterion, FilterTerms, _outer
+
+    generator = torch.Generator().manual_seed(5)
+    jac = torch.randn(2, 8, 5, generator=generator, dtype=torch.float64)  # (M, F, 5)
+    error = 0.01 * torch.randn(2, 8, generator=generator, dtype=torch.float64)  # (M, F)
+    terms = FilterTerms(_outer(jac * 1e8), _outer(jac), torch.einsum("mfi,mf->fmi", jac, error))
+    chosen = [0, 2, 3, 5, 6, 7]
+    variance = Criterion(terms, torch.ones(5, dtype=torch.float64), "targets").variance(chosen)[0]
+    for m in range(2):
+        answer = torch.linalg.lstsq(jac[m, chosen], error[m, chosen, None]).solution[:, 0]
+        assert torch.allclose(variance[m], answer**2, rtol=1e-6, atol=1e-18)
+
+
+def test_a_filter_the_model_misses_is_left_out():
+    """Filters 1 and 7 inform C_m alike; the model misses what filter 1 sees (a bias): the search takes 7."""
+    from skinlayers.band_design import Criterion, FilterTerms, _outer, exhaustive_search
+
+    jac = torch.zeros(1, 8, 5, dtype=torch.float64)
+    for f, k in ((1, 0), (2, 1), (3, 2), (4, 4), (7, 0)):
+        jac[0, f, k] = 10.0
+    for f in (0, 5, 6):
+        jac[0, f] = math.sqrt(60.0) * torch.tensor([1.0, 1.0, 1.0, 0.0, 1.0], dtype=torch.float64)
+    error = torch.zeros(1, 8, dtype=torch.float64)
+    error[0, 1] = 0.5
+    info = _outer(jac) + 1e-2 * torch.eye(5, dtype=torch.float64)
+    terms = FilterTerms(info, _outer(jac), torch.einsum("mfi,mf->fmi", jac, error))
+    assert exhaustive_search(Criterion(terms, torch.ones(5, dtype=torch.float64), "targets"), 4).chosen == (2, 3, 4, 7)
+
+
+def test_the_model_error_is_measured_where_the_skin_varies_and_kept(tmp_path, monkeypatch):
+    """The simulator's render against the fit's at the same maps: where blood absorbs (560 nm) the skin's
+    variation within a pixel shows; at 700 nm little; the measurement is cached and read back."""
+    from skinlayers import band_discrepancy
+    from skinlayers.acquire.rig import load_rig
+    from skinlayers.band_design import Filter
+
+    monkeypatch.setenv("SKINLAYERS_CACHE", str(tmp_path))
+    filters = [Filter(450.0, 10.0), Filter(560.0, 10.0), Filter(700.0, 10.0)]
+    found = band_discrepancy.discrepancy(load_rig(), filters, patch_px=16)
+    bias, spread = found.at(filters)
+    assert found.patch_px == 16 and found.mm_per_pixel == pytest.approx(load_rig().geometry.window_mm / load_rig().geometry.cube_px)
+    assert bool(spread[1] > 3 * spread[2]) and bool((bias.abs() < 0.05).all()), (bias, spread)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("measured again")
+
+    monkeypatch.setattr(band_discrepancy, "measure_discrepancy", refuse)
+    assert band_discrepancy.discrepancy(load_rig(), filters, patch_px=16) == found
+
+
 def test_the_shared_bound_is_the_inverse_of_the_whole_fisher_matrix():
     """n pixels of one skin, β_m, C_bc and C_hd shared by all: the variances equal the diagonal of the
     inverse of the n-pixel information matrix, built explicitly."""
@@ -131,11 +184,12 @@ def test_the_command_writes_a_rig_that_loads(tmp_path, run_cli):
 
     catalogue = tmp_path / "filters.csv"
     catalogue.write_text("centre_nm,fwhm_nm\n" + "".join(f"{c},10\n" for c in range(420, 660, 20)))  # 12 filters
-    code, out, err = run_cli("design-bands", "--catalog", str(catalogue), "--count", "6", "-o", str(tmp_path / "d"))
+    code, out, err = run_cli("design-bands", "--catalog", str(catalogue), "--count", "6", "--noise-only", "-o", str(tmp_path / "d"))
     assert code == 0, err
     record = json.loads((tmp_path / "d" / "design.json").read_text())
     assert record["search"]["method"] == "exhaustive" and record["search"]["sets_scored"] == 924  # 12 choose 6
-    assert len(record["chosen"]) == 6 and set(record["crb_median_sd"]) == {"chosen", "current rig", "evenly spaced"}
+    assert record["model_error"] is None
+    assert len(record["chosen"]) == 6 and set(record["median_expected_sd"]) == {"chosen", "current rig", "evenly spaced"}
     rig = load_rig(tmp_path / "d" / "rig.yaml")
     assert [b.wavelength_nm for b in rig.bands] == [f["centre_nm"] for f in record["chosen"]]
     assert [b.iso for b in rig.bands] == [f["iso"] for f in record["chosen"]] and (tmp_path / "d" / "bound_vs_count.png").is_file()

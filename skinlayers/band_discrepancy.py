@@ -1,0 +1,144 @@
+"""The fit's model error through each filter, for ``design-bands``: what the fit's renderer misses of the skin.
+
+The bound of ``band_design`` counts the camera's noise, but the fit also misses what its model cannot
+hold: the skin varies within a cube pixel (a pixel's reflectance is the mean over its area, not the
+reflectance of its mean maps, most where blood absorbs), and the simulator renders on a finer grid, with
+every wavelength of the filter's quadrature and a tighter series. Only a render shows it, so it is
+measured (``measure_discrepancy``): the demo's scene rendered as the simulator renders it
+(``SimulatedBench.render_band``: the truth grid, each filter's full quadrature, box-averaged to the cube
+grid) against the fit's own renderer (``SkinRenderer`` with the default settings, the cube grid, the
+band's three nodes and weights, ``reconstruct/problem.py``) at the truth's maps box-averaged to the cube
+grid; on a patch of ``patch_px``² cube pixels of the rig's own pixel size, the window lit as the rig lights it.
+
+Per filter, relative to the fit's render: the mean over the patch (``bias_rel``: the same in every pixel,
+a systematic no sharing of a map over pixels averages away) and the standard deviation (``spread_rel``:
+different from pixel to pixel, it acts on the fit as noise does). Measured once per rig pixel size,
+filters and settings, and kept in the cache (``model/tables.default_cache_dir``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass
+from typing import Sequence
+
+import torch
+
+__all__ = ["DISCREPANCY_PATCH_PX", "DISCREPANCY_SEED", "Discrepancy", "discrepancy", "measure_discrepancy"]
+
+#: The scene's seed: the prior's (``band_design.PRIOR_SEED``); the pipeline's checks use others.
+DISCREPANCY_SEED = 20
+#: The patch's side in cube pixels (the rig's cube where it is smaller).
+DISCREPANCY_PATCH_PX = 64
+#: Bumped when what is measured changes: cached measurements of an older version are not used.
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Discrepancy:
+    """Per filter (``centre_nm``, ``fwhm_nm``, each ``(F,)``), the simulator's render over the fit's less 1:
+    its mean over the patch's pixels (``bias_rel``) and their standard deviation (``spread_rel``)."""
+
+    centre_nm: list[float]
+    fwhm_nm: list[float]
+    bias_rel: list[float]
+    spread_rel: list[float]
+    mm_per_pixel: float
+    patch_px: int
+    seed: int
+    seconds: float
+
+    def at(self, filters) -> tuple[torch.Tensor, torch.Tensor]:
+        """``bias_rel`` and ``spread_rel`` ``(F,)`` float64 of ``filters`` (each measured here)."""
+        index = {(c, w): i for i, (c, w) in enumerate(zip(self.centre_nm, self.fwhm_nm))}
+        rows = [index[(f.centre_nm, f.fwhm_nm)] for f in filters]
+        return (torch.tensor([self.bias_rel[i] for i in rows], dtype=torch.float64),
+                torch.tensor([self.spread_rel[i] for i in rows], dtype=torch.float64))
+
+
+def _patch_rig(rig, patch_px: int):
+    """The rig cut to a ``patch_px``² window of its own pixel size, photographed by the simulator."""
+    from .demo import MIN_RECTIFY_PX  # noqa: PLC0415
+
+    g = rig.geometry
+    n = min(patch_px, g.cube_px)
+    geometry = {"cube_px": n, "window_mm": g.window_mm * n / g.cube_px, "rectify_px": max(2 * n, MIN_RECTIFY_PX)}
+    return rig.model_copy(update={"geometry": g.model_copy(update=geometry),
+                                  "camera": rig.camera.model_copy(update={"driver": "simulated"})})
+
+
+def measure_discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPANCY_SEED,
+                        patch_px: int = DISCREPANCY_PATCH_PX, device: str | torch.device = "cpu") -> Discrepancy:
+    """The simulator's render of the demo's scene through each filter against the fit's renderer at the
+    same maps (the module docstring); minutes for a catalogue of tens of filters on two CPU cores."""
+    from .acquire._optics import band_spectrum  # noqa: PLC0415
+    from .acquire.scene import scene_from_dict  # noqa: PLC0415
+    from .acquire.simulated import SimulatedBench  # noqa: PLC0415
+    from .demo import demo_scene  # noqa: PLC0415
+
+    start = time.perf_counter()
+    patch = _patch_rig(rig, patch_px)
+    bench = SimulatedBench(patch, scene_from_dict(demo_scene()), simulation, seed=seed, device=device)
+    s = bench.settings
+    for f in filters:  # every filter is one of the bench's bands: its spectrum as the simulator takes it
+        bench.spectra[f.centre_nm] = band_spectrum(f.centre_nm, f.fwhm_nm, s.filters.wavelength_samples, s.flash.temperature_k,
+                                                   s.sensor.sensitivity)
+    m, n, k = bench._margin_px, bench._window_px, s.truth.oversample
+    pool = lambda image: torch.nn.functional.avg_pool2d(image[:, m:m + n, m:m + n].double()[:, None], k)[:, 0]  # noqa: E731
+    truth = pool(torch.stack([bench.render_band(f.centre_nm).truth for f in filters]))  # (F, n', n')
+    maps = bench.scene_maps()
+    cube = maps.replace(**{p: pool(getattr(maps, p)) for p in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")},
+                        mm_per_pixel=patch.geometry.window_mm / patch.geometry.cube_px, absorbance=None,
+                        absorbance_wavelength_nm=None, rho_s=None)
+    fitted = _fit_render(cube, patch, filters)
+    relative = (truth / fitted - 1.0).reshape(len(filters), -1)
+    return Discrepancy([f.centre_nm for f in filters], [f.fwhm_nm for f in filters], relative.mean(1).tolist(),
+                       relative.std(1).tolist(), cube.mm_per_pixel, patch.geometry.cube_px, seed, time.perf_counter() - start)
+
+
+def _fit_render(maps, rig, filters) -> torch.Tensor:
+    """The fit's renderer (default settings) at ``maps`` on the cube grid through each filter ``(F, H, W)``:
+    its three nodes per band and their weights, the window lit, seen from the rig's camera."""
+    from .model.illumination import Light  # noqa: PLC0415
+    from .model.renderer import SkinRenderer  # noqa: PLC0415
+    from .model.settings import ModelSettings  # noqa: PLC0415
+    from .reconstruct.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
+
+    nodes = band_nodes(torch.tensor([f.centre_nm for f in filters], dtype=torch.float64),
+                       torch.tensor([f.fwhm_nm for f in filters], dtype=torch.float64))  # (F, 3)
+    light = Light("window", size_mm=rig.geometry.window_mm)
+    renderer = SkinRenderer(ModelSettings())
+    with torch.no_grad():
+        image = renderer.render(maps.to(dtype=torch.float64), light, nodes.reshape(-1), under_gel=True, light_angle_deg=0.0,
+                                view_angle_deg=rig.camera.angle_deg).image[0]
+    weights = torch.tensor(BAND_WEIGHTS, dtype=torch.float64, device=image.device)
+    return (image.reshape(len(filters), len(BAND_WEIGHTS), *image.shape[-2:]) * weights[None, :, None, None]).sum(1).cpu()
+
+
+def discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPANCY_SEED, patch_px: int = DISCREPANCY_PATCH_PX,
+                device: str | torch.device = "cpu", say=None) -> Discrepancy:
+    """``measure_discrepancy``, kept in the cache under everything it depends on (a second design with the
+    same rig pixel size, filters and settings reads it back); ``say`` reports a measurement's start."""
+    from .acquire.simulation_settings import load_simulation_settings  # noqa: PLC0415
+    from .formats.files import atomic_write  # noqa: PLC0415
+    from .model.settings import ModelSettings  # noqa: PLC0415
+    from .model.tables import default_cache_dir  # noqa: PLC0415
+
+    settings = simulation if simulation is not None else load_simulation_settings(None)
+    patch = _patch_rig(rig, patch_px)
+    key = json.dumps({"version": FORMAT_VERSION, "filters": [[f.centre_nm, f.fwhm_nm] for f in filters], "seed": seed,
+                      "geometry": patch.geometry.model_dump(mode="json"), "angle": rig.camera.angle_deg,
+                      "simulation": settings.model_dump(mode="json"), "model": ModelSettings().model_dump(mode="json")},
+                     sort_keys=True)
+    path = default_cache_dir() / "band_discrepancy" / (hashlib.sha256(key.encode()).hexdigest()[:24] + ".json")
+    try:
+        return Discrepancy(**json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError):
+        pass  # not measured yet (or an unreadable file): measure it
+    if say is not None:
+        say(f"measuring the fit's model error through {len(filters)} filters (once for this rig and catalogue; minutes)")
+    found = measure_discrepancy(rig, filters, simulation=settings, seed=seed, patch_px=patch_px, device=device)
+    atomic_write(path, json.dumps(asdict(found)).encode())
+    return found
