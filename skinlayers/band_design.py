@@ -78,7 +78,12 @@ CRITERIA = tuple(CRITERION_WORDS)
 #: Counts the chart of the bound against N spans: one band per parameter and the scale, to a full wheel.
 CHART_COUNTS = range(6, 12)
 #: Evenly spaced comparison: the catalogue's span in ``count`` equal steps.
-COMPARISONS = ("chosen", "current rig", "evenly spaced")
+COMPARISONS = ("chosen", "current rig", "evenly spaced", "RGB camera")
+#: A map whose expected σ exceeds this (relative; β_m absolute) is reported undetermined.
+UNDETERMINED_SD = 10.0
+#: The RGB camera of the comparison: its channels' wavelengths, every step over the span (nm).
+RGB_SPAN_NM = (380.0, 780.0)
+RGB_STEP_NM = 5.0
 #: Bytes a batch of sets may gather at once (each set's information: count × skins × 5 × 5 float64).
 SCORE_BATCH_BYTES = 64 * 2**20
 #: Exchange passes from one start at most (each lowers the score; the searches here end in a few).
@@ -159,27 +164,67 @@ class Radiometry:
     def iso(self, f: Filter) -> int:
         """The largest ISO at which the Spectralon (the flash at its strongest) stays within ``reference_fill``
         of the range, as the rig file's ISOs were chosen; the lowest when none does."""
+        return self._exposure(float(self.electrons(f).max()) * self.spectralon(f))[0]
+
+    def _exposure(self, peak_e: float) -> tuple[int, float]:
+        """The ISO by the rig's rule for a Spectralon of ``peak_e`` electrons at its brightest photosite, and
+        the share of the light (≤ 1: the aperture stopped down) that keeps it in range at the lowest ISO."""
         s = self.settings.sensor
-        peak_e = float(self.electrons(f).max()) * self.spectralon(f) * (1.0 + self.settings.flash.jitter)
+        peak_e *= 1.0 + self.settings.flash.jitter
         limit = s.reference_fill * (s.white_level - max(s.black_level))
         fitting = [iso for iso in s.iso_values if peak_e / self._gain(iso) <= limit]
-        return max(fitting) if fitting else min(s.iso_values)
+        if fitting:
+            return max(fitting), 1.0
+        lowest = min(s.iso_values)
+        return lowest, limit * self._gain(lowest) / peak_e
 
     def reflectance_sd(self, f: Filter, reflectance: torch.Tensor, iso: int | None = None) -> torch.Tensor:
         """The noise (standard deviation) of a cube pixel's calibrated reflectance at ``reflectance`` (any
         shape): skin over Spectralon superpixels (R + 2G + B) less the black frame, each photosite's
         variance (μ_e + σ_e²)/g² + σ_DN² + 1/12 in DN², averaged over ``superpixels``."""
+        electrons = float(self.electrons(f) @ np.array([1.0, 2.0, 1.0]))
+        return self._ratio_sd(electrons, 4, self.spectralon(f), iso or self.iso(f), reflectance)
+
+    def rgb(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """An RGB camera under the flash without a filter: wavelengths ``(K,)`` every ``RGB_STEP_NM`` over
+        ``RGB_SPAN_NM`` and each channel's weights ``(3, K)`` (flash × sensitivity, each row summing to 1)."""
+        nodes, weights = self._rgb_weights()
+        return torch.from_numpy(nodes), torch.from_numpy(weights / weights.sum(1, keepdims=True))
+
+    def rgb_sd(self, reflectance: torch.Tensor) -> torch.Tensor:
+        """The noise of an RGB camera's calibrated reflectance per channel ``(M, 3)`` at ``reflectance``
+        ``(M, 3)``: each channel's photosites of a superpixel (R, 2 G, B) over the Spectralon's, the
+        exposure by the rig's rule with the aperture stopped down where the lowest ISO saturates."""
+        signal = self._rgb_weights()[1].sum(1) * RGB_STEP_NM  # ∫ flash × sensitivity dλ, as a filter's channel signal
+        electrons = self.white_electrons * signal / self.reference_signal
+        spectralon = self.rig.targets.spectralon_at(550.0) * self.rig.polarization.spectralon_factor
+        iso, share = self._exposure(float(electrons.max()) * spectralon)
+        photosites = (1, 2, 1)
+        return torch.stack([self._ratio_sd(share * electrons[c] * n, n, spectralon, iso, reflectance[:, c])
+                            for c, n in enumerate(photosites)], dim=1)
+
+    def _rgb_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """Wavelengths ``(K,)`` over ``RGB_SPAN_NM`` and flash × sensitivity of each channel there ``(3, K)``."""
+        from .acquire._optics import CHANNELS, blackbody, channel_sensitivity  # noqa: PLC0415
+
+        s = self.settings
+        nodes = np.arange(RGB_SPAN_NM[0], RGB_SPAN_NM[1] + RGB_STEP_NM / 2, RGB_STEP_NM)
+        return nodes, np.stack([blackbody(nodes, s.flash.temperature_k) * channel_sensitivity(s.sensor.sensitivity[c], nodes)
+                                for c in CHANNELS])
+
+    def _ratio_sd(self, electrons: float, photosites: int, spectralon: float, iso: int, reflectance: torch.Tensor) -> torch.Tensor:
+        """The noise of skin over Spectralon, ``photosites`` of a superpixel gathering ``electrons`` per unit
+        reflectance together, less the black frame, averaged over ``superpixels``."""
         s = self.settings.sensor
-        g = self._gain(iso or self.iso(f))
-        e = torch.as_tensor(self.electrons(f), dtype=reflectance.dtype) * torch.tensor([1.0, 2.0, 1.0], dtype=reflectance.dtype)
-        dark_var = 4 * ((s.read_noise_e / g) ** 2 + s.read_noise_dn**2 + 1.0 / 12.0)  # a superpixel's read noise and DN step
+        g = self._gain(iso)
+        dark_var = photosites * ((s.read_noise_e / g) ** 2 + s.read_noise_dn**2 + 1.0 / 12.0)  # read noise and DN step
 
         def mean_var(rho):
-            mu_e = float(e.sum()) * rho * self.rig.polarization.skin_factor
+            mu_e = electrons * rho * self.rig.polarization.skin_factor
             return mu_e / g, mu_e / g**2 + dark_var
 
         skin_dn, skin_var = mean_var(reflectance)
-        ref_dn, ref_var = mean_var(torch.as_tensor(self.spectralon(f) / self.rig.polarization.skin_factor, dtype=reflectance.dtype))
+        ref_dn, ref_var = mean_var(torch.as_tensor(spectralon / self.rig.polarization.skin_factor, dtype=reflectance.dtype))
         # the black frame is subtracted from both: its variance (read noise alone) counts once in each
         relative = (skin_var + dark_var) / skin_dn**2 + (ref_var + dark_var) / ref_dn**2
         return reflectance * torch.sqrt(relative / self.superpixels)
@@ -211,22 +256,30 @@ def band_jacobian(skins: torch.Tensor, filters: Sequence[Filter], view_angle_deg
     """The fit's band reflectance ``(M, F)`` of each skin ``(M, 5)`` through each filter, seen at
     ``view_angle_deg``, and its derivative ``(M, F, 5)`` in log C_m, β_m, log C_he, log C_bc, log C_hd
     (``reconstruct/problem.py``'s band model)."""
+    from .reconstruct.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
+
+    nodes = band_nodes(torch.tensor([f.centre_nm for f in filters], dtype=torch.float64),
+                       torch.tensor([f.fwhm_nm for f in filters], dtype=torch.float64))  # (F, 3)
+    return weighted_jacobian(skins, nodes, torch.tensor(BAND_WEIGHTS, dtype=torch.float64).expand_as(nodes), view_angle_deg)
+
+
+def weighted_jacobian(skins: torch.Tensor, nodes_nm: torch.Tensor, weights: torch.Tensor,
+                      view_angle_deg: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The model's reflectance ``(M, F)`` of each skin ``(M, 5)`` through each of F responses, each a
+    weighted sum over its wavelengths (``nodes_nm``, ``weights`` ``(F, K)``, weights summing to 1), times
+    the camera's exit factor; and its derivative ``(M, F, 5)`` in the bound's parameters."""
     from .model import SkinModel  # noqa: PLC0415
     from .model.params import SkinParams  # noqa: PLC0415
     from .model.radiometry import exit_factor  # noqa: PLC0415
     from .model.settings import ModelSettings  # noqa: PLC0415
-    from .reconstruct.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
 
     model = SkinModel(ModelSettings())
     o = model.settings.optics
     exit = exit_factor(o.n_epidermis, o.n_above, math.cos(math.radians(view_angle_deg)))
-    nodes = band_nodes(torch.tensor([f.centre_nm for f in filters], dtype=torch.float64),
-                       torch.tensor([f.fwhm_nm for f in filters], dtype=torch.float64))  # (F, 3)
-    weights = torch.tensor(BAND_WEIGHTS, dtype=torch.float64)
     u = _to_u(skins).requires_grad_(True)
-    reflectance = model.diffuse_reflectance(SkinParams.from_tensor(_from_u(u)), nodes.reshape(-1)).reshape(len(skins), len(filters), 3)
+    reflectance = model.diffuse_reflectance(SkinParams.from_tensor(_from_u(u)), nodes_nm.reshape(-1)).reshape(len(skins), *nodes_nm.shape)
     band = exit * (reflectance * weights).sum(-1)  # (M, F)
-    jac = torch.stack([torch.autograd.grad(band[:, j].sum(), u, retain_graph=True)[0] for j in range(len(filters))], dim=1)
+    jac = torch.stack([torch.autograd.grad(band[:, j].sum(), u, retain_graph=True)[0] for j in range(nodes_nm.shape[0])], dim=1)
     return band.detach(), jac
 
 
@@ -267,6 +320,24 @@ def filter_terms(radiometry: Radiometry, skins: torch.Tensor, filters: Sequence[
     return FilterTerms(_outer(jac / sd[..., None]), _outer(jac), torch.einsum("mfi,mf->fmi", jac, bias_rel * band))
 
 
+def rgb_terms(radiometry: Radiometry, skins: torch.Tensor, model_error: bool) -> FilterTerms:
+    """``FilterTerms`` of an RGB camera's three channels under the flash (``Radiometry.rgb``), as three
+    filters: the camera's noise alone (the model's error through so broad a response is not measured; with
+    ``model_error`` its bias is taken as nil, so the normal matrix is there to concatenate)."""
+    nodes, weights = radiometry.rgb()
+    band, jac = weighted_jacobian(skins, nodes.expand(len(weights), -1), weights, radiometry.rig.camera.angle_deg)
+    information = _outer(jac / radiometry.rgb_sd(band)[..., None])
+    if not model_error:
+        return FilterTerms(information)
+    return FilterTerms(information, _outer(jac), torch.zeros(len(weights), *jac.shape[::2], dtype=jac.dtype))
+
+
+def _joined(a: FilterTerms, b: FilterTerms) -> FilterTerms:
+    """The filters of ``a`` then those of ``b``."""
+    join = lambda x, y: None if x is None else torch.cat([x, y])  # noqa: E731
+    return FilterTerms(join(a.information, b.information), join(a.normal, b.normal), join(a.projected, b.projected))
+
+
 def filter_information(radiometry: Radiometry, skins: torch.Tensor, filters: Sequence[Filter]) -> torch.Tensor:
     """Each filter's Fisher information on each skin from the camera's noise alone, ``(F, M, 5, 5)``."""
     return filter_terms(radiometry, skins, filters).information
@@ -291,25 +362,39 @@ def shared_pixels(rig=None, cells_mm: dict[str, float] | None = None) -> torch.T
 
 def bound_variance(fisher: torch.Tensor, shared: torch.Tensor) -> torch.Tensor:
     """The Cramér–Rao variances ``(..., 5)`` of a pixel's parameters from one pixel's Fisher information
-    ``(..., 5, 5)``, the parameters with ``shared`` > 1 estimated from that many pixels of the same skin.
+    ``(..., 5, 5)``, each parameter estimated from ``shared`` pixels of the same skin, the cells nested
+    (each larger cell made of whole smaller ones, as the fit's grids are).
 
-    Per-pixel parameters p, shared s: the shared ones' information is the Schur complement
-    S = F_ss − F_sp F_pp⁻¹ F_ps gathered over their pixels, S_kl × min(n_k, n_l) (exact for one shared
-    count; for nested cells, the pixels two parameters have in common); a pixel's p then carries
-    F_pp⁻¹ + F_pp⁻¹ F_ps Var(s) F_sp F_pp⁻¹ (its own share of the shared ones neglected)."""
-    eye = 1e-12 * torch.eye(fisher.shape[-1], dtype=fisher.dtype)
-    fisher = fisher + eye
-    p = (shared <= 1).nonzero().flatten()
-    s = (shared > 1).nonzero().flatten()
-    f_pp, f_ps, f_ss = fisher[..., p[:, None], p], fisher[..., p[:, None], s], fisher[..., s[:, None], s]
-    inv_pp = torch.linalg.inv(f_pp)
-    schur = f_ss - f_ps.transpose(-1, -2) @ inv_pp @ f_ps
-    counts = shared[s]
-    var_s = torch.linalg.inv(schur * torch.minimum(counts[:, None], counts[None, :]))
-    var_p = inv_pp + inv_pp @ f_ps @ var_s @ f_ps.transpose(-1, -2) @ inv_pp
+    Exact for that skin: from the smallest cells up, a level's information is gathered over its cell
+    (× its count over the level below's) and its parameters eliminated (the Schur complement on those
+    above); from the largest down, the covariance of a level's parameters and those above follows by the
+    block inverse, A⁻¹ + A⁻¹B C BᵀA⁻¹ beside −A⁻¹B C (C the covariance above) — exact for the
+    block-arrow matrix of many cells beside the parameters they share."""
+    information = fisher + 1e-12 * torch.eye(fisher.shape[-1], dtype=fisher.dtype)
+    current, below, steps = list(range(fisher.shape[-1])), 1.0, []
+    for count in sorted(set(shared.tolist())):  # up: gather over the cell, eliminate the level
+        information = information * (count / below)
+        below = count
+        here = torch.tensor([k for k, i in enumerate(current) if float(shared[i]) == count])
+        above = torch.tensor([k for k, i in enumerate(current) if float(shared[i]) != count], dtype=torch.long)
+        inv_a = torch.linalg.inv(information[..., here[:, None], here])
+        b = information[..., here[:, None], above]
+        steps.append(([current[k] for k in here], [current[k] for k in above], inv_a, b))
+        information = information[..., above[:, None], above] - b.transpose(-1, -2) @ inv_a @ b
+        current = [current[k] for k in above]
+    cov, order = None, []
+    for level, rest, inv_a, b in reversed(steps):  # down: the covariance of this level and those above
+        if rest:
+            upper = cov[..., [order.index(i) for i in rest], :][..., [order.index(i) for i in rest]]
+            gain = inv_a @ b
+            off = -gain @ upper
+            cov = torch.cat([torch.cat([inv_a - off @ gain.transpose(-1, -2), off], -1),
+                             torch.cat([off.transpose(-1, -2), upper], -1)], -2)
+        else:
+            cov = inv_a
+        order = level + rest
     out = torch.empty(fisher.shape[:-1], dtype=fisher.dtype)
-    out[..., p] = var_p.diagonal(dim1=-2, dim2=-1)
-    out[..., s] = var_s.diagonal(dim1=-2, dim2=-1)
+    out[..., order] = cov.diagonal(dim1=-2, dim2=-1)
     return out
 
 
@@ -389,15 +474,16 @@ def exhaustive_search(criterion: Criterion, count: int) -> SearchResult:
     return SearchResult(tuple(best), best_score, "exhaustive", evaluated, time.perf_counter() - start)
 
 
-def exchange_search(criterion: Criterion, count: int, starts: int = EXCHANGE_STARTS, seed: int = 0) -> SearchResult:
-    """Fedorov's exchange: from each random start, the best single swap (a chosen filter for one not
-    chosen) while it lowers the score; the best end point of all starts."""
+def exchange_search(criterion: Criterion, count: int, starts: int = EXCHANGE_STARTS, seed: int = 0,
+                    initial: Sequence[Sequence[int]] = ()) -> SearchResult:
+    """Fedorov's exchange: from each start (the ``initial`` sets, then ``starts`` random ones), the best
+    single swap (a chosen filter for one not chosen) while it lowers the score; the best end point."""
     start_time = time.perf_counter()
     generator = torch.Generator().manual_seed(seed)
     size = criterion.candidates
     best, best_score, evaluated = None, math.inf, 0
-    for _ in range(starts):
-        chosen = sorted(torch.randperm(size, generator=generator)[:count].tolist())
+    randoms = (sorted(torch.randperm(size, generator=generator)[:count].tolist()) for _ in range(starts))
+    for chosen in itertools.chain((sorted(c) for c in initial), randoms):
         score = float(criterion(chosen))
         for _ in range(MAX_EXCHANGES):
             swaps = [sorted([*chosen[:i], c, *chosen[i + 1:]]) for i in range(count) for c in range(size) if c not in chosen]
@@ -412,14 +498,34 @@ def exchange_search(criterion: Criterion, count: int, starts: int = EXCHANGE_STA
     return SearchResult(tuple(best), best_score, "exchange", evaluated, time.perf_counter() - start_time)
 
 
-def search(criterion: Criterion, count: int) -> SearchResult:
-    """Exhaustive where the combinations are at most ``EXHAUSTIVE_LIMIT``, else the exchange algorithm."""
+def search(criterion: Criterion, count: int, initial: Sequence[Sequence[int]] = ()) -> SearchResult:
+    """Exhaustive where the combinations are at most ``EXHAUSTIVE_LIMIT``, else the exchange algorithm
+    (from ``initial`` sets too)."""
     size = criterion.candidates
     if not 1 <= count <= size:
         raise InputError(f"--count {count}: choose between 1 and the catalogue's {size} filters")
     if math.comb(size, count) <= EXHAUSTIVE_LIMIT:
         return exhaustive_search(criterion, count)
-    return exchange_search(criterion, count)
+    return exchange_search(criterion, count, initial=initial)
+
+
+def search_counts(criterion: Criterion, counts: Sequence[int]) -> dict[int, SearchResult]:
+    """The best set of each count, ascending: each exchange starts also from the best set one smaller with
+    the filter that lowers its score most (the model's bias makes the score rugged: random starts alone
+    ended far from the best at 11 filters)."""
+    found: dict[int, SearchResult] = {}
+    for count in sorted(set(counts)):
+        smaller = found.get(count - 1)
+        initial = [] if smaller is None else [_best_extension(criterion, smaller.chosen)]
+        found[count] = search(criterion, count, initial)
+    return found
+
+
+def _best_extension(criterion: Criterion, chosen: Sequence[int]) -> list[int]:
+    """``chosen`` with the one further filter that gives the lowest score."""
+    others = [c for c in range(criterion.candidates) if c not in chosen]
+    sets = [sorted([*chosen, c]) for c in others]
+    return sets[int(torch.argmin(criterion(torch.tensor(sets))))]
 
 
 @dataclass
@@ -453,15 +559,18 @@ def design_bands(catalogue: Sequence[Filter], count: int, rig=None, kind: str = 
                 "evenly spaced": [Filter(float(c), catalogue[0].fwhm_nm) for c in np.linspace(lo, hi, count)]}
     every = [*catalogue, *compared["current rig"], *compared["evenly spaced"]]
     error = discrepancy(radiometry.rig, list(dict.fromkeys(every)), simulation=radiometry.settings, say=say) if model_error else None
-    terms = filter_terms(radiometry, prior_skins(), every, error)
+    skins = prior_skins()
+    terms = _joined(filter_terms(radiometry, skins, every, error), rgb_terms(radiometry, skins, model_error))
     n, r = len(catalogue), len(compared["current rig"])
-    sets = {"current rig": list(range(n, n + r)), "evenly spaced": list(range(n + r, len(every)))}
+    sets = {"current rig": list(range(n, n + r)), "evenly spaced": list(range(n + r, len(every))),
+            "RGB camera": list(range(len(every), len(every) + 3))}
     criterion = Criterion(terms, shared_pixels(radiometry.rig), kind, sets["current rig"], candidates=n)
-    found = search(criterion, count)
+    searched = search_counts(criterion, [k for k in CHART_COUNTS if k <= n] + [count])
+    found = searched[count]
     sets = {"chosen": list(found.chosen), **sets}
     bounds = {name: criterion.median_sd(chosen) for name, chosen in sets.items()}
     scores = {name: float(criterion(chosen)) for name, chosen in sets.items()}
-    by_count = {k: found.score if k == count else search(criterion, k).score for k in CHART_COUNTS if k <= n}
+    by_count = {k: searched[k].score for k in CHART_COUNTS if k <= n}
     chosen = [catalogue[i] for i in found.chosen]
     return BandDesign(chosen, [radiometry.iso(f) for f in chosen], kind, found, bounds, scores, by_count, time.perf_counter() - start,
                       error)
@@ -569,7 +678,7 @@ def design_bands_cli(
     typer.echo(f"search: {design.search.method}, {design.search.evaluated} sets in {design.search.seconds:.1f} s; "
                f"all of it {design.seconds:.0f} s")
     for name in COMPARISONS:
-        sd = ", ".join(f"{k} {100 * v:.1f}%" for k, v in design.bounds[name].items())
+        sd = ", ".join(f"{k} {100 * v:.1f}%" if v <= UNDETERMINED_SD else f"{k} undetermined" for k, v in design.bounds[name].items())
         typer.echo(f"{name:>14}: score {design.scores[name]:.3g}; median expected error {sd}")
     for kind, path in paths.items():
         typer.echo(f"{kind}: {path}")

@@ -138,6 +138,24 @@ def test_the_model_error_is_measured_where_the_skin_varies_and_kept(tmp_path, mo
     assert band_discrepancy.discrepancy(load_rig(), filters, patch_px=16) == found
 
 
+def test_an_rgb_camera_cannot_determine_the_five_maps():
+    """DWRR08 §6.1: five parameters a point, three channels. Under the same flash and noise model, the RGB
+    camera leaves the maps it shares over cells undetermined (a uniform cell adds no new direction), while
+    the rig's nine bands determine every map."""
+    from skinlayers.band_design import (UNDETERMINED_SD, Criterion, Filter, Radiometry, _joined, filter_terms, rgb_terms,
+                                        shared_pixels)
+
+    radiometry = Radiometry()
+    skins = torch.tensor([III_INTERIOR, (0.03, 0.6, 0.003, 0.0004, 0.01)], dtype=torch.float64)
+    rig = [Filter(b.wavelength_nm, b.fwhm_nm) for b in radiometry.rig.bands]
+    terms = _joined(filter_terms(radiometry, skins, rig), rgb_terms(radiometry, skins, model_error=False))
+    criterion = Criterion(terms, shared_pixels(radiometry.rig), "targets")
+    rgb, nine = criterion.median_sd([9, 10, 11]), criterion.median_sd(list(range(9)))
+    assert all(nine[k] < 1.0 for k in ("C_m", "beta_m", "C_he", "C_hd")), nine
+    assert all(rgb[k] > UNDETERMINED_SD for k in ("beta_m", "C_bc", "C_hd")), rgb
+    assert float(radiometry.rgb_sd(torch.full((1, 3), 0.5, dtype=torch.float64)).max()) < 0.02  # a plausible noise, not a blow-up
+
+
 def test_the_shared_bound_is_the_inverse_of_the_whole_fisher_matrix():
     """n pixels of one skin, β_m, C_bc and C_hd shared by all: the variances equal the diagonal of the
     inverse of the n-pixel information matrix, built explicitly."""
@@ -159,6 +177,31 @@ def test_the_shared_bound_is_the_inverse_of_the_whole_fisher_matrix():
     shared = torch.tensor([1.0, n, 1.0, n, n], dtype=torch.float64)
     variance = bound_variance(fisher, shared)
     assert torch.allclose(variance[per], exact[:2], rtol=1e-9) and torch.allclose(variance[shr], exact[2 * n:], rtol=1e-9)
+
+
+def test_the_nested_bound_is_the_inverse_of_the_whole_fisher_matrix():
+    """Eight pixels of one skin: C_m and C_he per pixel, C_hd shared by pairs, β_m by fours, C_bc by all:
+    the variances equal the diagonal of the inverse of the whole information matrix, built explicitly."""
+    from skinlayers.band_design import bound_variance
+
+    generator = torch.Generator().manual_seed(2)
+    j = torch.randn(9, 5, generator=generator, dtype=torch.float64)
+    fisher = j.T @ j
+    counts = (1, 4, 1, 8, 2)  # C_m, β_m, C_he, C_bc, C_hd
+    index, size = {}, 0
+    for pixel in range(8):
+        for k, n in enumerate(counts):
+            key = (k, pixel // n)
+            if key not in index:
+                index[key], size = size, size + 1
+    whole = torch.zeros(size, size, dtype=torch.float64)
+    for pixel in range(8):
+        rows = torch.tensor([index[(k, pixel // n)] for k, n in enumerate(counts)])
+        whole[rows[:, None], rows] += fisher
+    exact = torch.linalg.inv(whole).diagonal()
+    variance = bound_variance(fisher, torch.tensor(counts, dtype=torch.float64))
+    expected = torch.stack([exact[index[(k, 0)]] for k in range(5)])
+    assert torch.allclose(variance, expected, rtol=1e-9)
 
 
 @pytest.mark.parametrize("text, words", [
@@ -189,7 +232,7 @@ def test_the_command_writes_a_rig_that_loads(tmp_path, run_cli):
     record = json.loads((tmp_path / "d" / "design.json").read_text())
     assert record["search"]["method"] == "exhaustive" and record["search"]["sets_scored"] == 924  # 12 choose 6
     assert record["model_error"] is None
-    assert len(record["chosen"]) == 6 and set(record["median_expected_sd"]) == {"chosen", "current rig", "evenly spaced"}
+    assert len(record["chosen"]) == 6 and set(record["median_expected_sd"]) == {"chosen", "current rig", "evenly spaced", "RGB camera"}
     rig = load_rig(tmp_path / "d" / "rig.yaml")
     assert [b.wavelength_nm for b in rig.bands] == [f["centre_nm"] for f in record["chosen"]]
     assert [b.iso for b in rig.bands] == [f["iso"] for f in record["chosen"]] and (tmp_path / "d" / "bound_vs_count.png").is_file()

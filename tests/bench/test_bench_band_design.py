@@ -5,7 +5,8 @@ photographed with the same flash), calibrated and fitted with the default settin
 error against the simulation's truth — on seeds the search never saw (its prior is Table 2 with the
 scene's spread; its model error is measured on the scene of seed 20), side by side in one run.
 
-``SKINLAYERS_BENCH_DESIGN_SEEDS`` (default ``101,102``) picks the seeds; ``SKINLAYERS_BENCH_DESIGN_NOISE_ONLY=1``
+``SKINLAYERS_BENCH_DESIGN_SEEDS`` (default ``101,102``) picks the seeds, ``SKINLAYERS_BENCH_DESIGN_SIZE`` the
+cube's side (default 64; 256 is the rig's own, four times the time); ``SKINLAYERS_BENCH_DESIGN_NOISE_ONLY=1``
 designs from the camera's noise alone. Rows go to ``band_design.csv`` as they are measured (a rerun skips
 the rig, bands and seed there).
 
@@ -23,8 +24,8 @@ from bench_io import append_rows, done_keys, out_dir
 
 pytestmark = pytest.mark.bench
 
-FIELDS = ["rig", "bands_nm", "seed", "C_m", "beta_m", "C_he", "C_bc", "C_hd", "residual_rms"]
-SIZE = 64
+FIELDS = ["rig", "bands_nm", "seed", "C_m", "beta_m", "C_he", "C_bc", "C_hd", "residual_rms", "size"]
+SIZE = int(os.environ.get("SKINLAYERS_BENCH_DESIGN_SIZE", "64"))
 
 
 def _session_errors(folder: Path, rig_path: Path | None, simulation: Path, seed: int) -> dict:
@@ -60,13 +61,14 @@ def test_chosen_bands_against_the_rigs_through_the_pipeline(tmp_path):
     simulation = base / "simulation.yaml"
     simulation.write_text(yaml.safe_dump(settings, sort_keys=False))
     table = out_dir() / "band_design.csv"
-    done = done_keys(table, ("rig", "bands_nm", "seed"))
+    done = {(rig_name, bands, seed) for rig_name, bands, seed, size in done_keys(table, ("rig", "bands_nm", "seed", "size"))
+            if int(size or 64) == SIZE}
     seeds = [int(s) for s in os.environ.get("SKINLAYERS_BENCH_DESIGN_SEEDS", "101,102").split(",")]
     for seed in seeds:
         for name, rig_path in (("current", None), ("chosen", paths["rig"])):
             bands = rig.bands if rig_path is None else load_rig(rig_path).bands
             if (name, " ".join(f"{b.wavelength_nm:g}" for b in bands), str(seed)) in done:
                 continue
-            row = {"rig": name, "seed": seed, **_session_errors(tmp_path / f"{name}-{seed}", rig_path, simulation, seed)}
+            row = {"rig": name, "seed": seed, "size": SIZE, **_session_errors(tmp_path / f"{name}-{seed}", rig_path, simulation, seed)}
             append_rows(table, FIELDS, [row])
     assert load_rig(paths["rig"]).bands  # the written rig loads
