@@ -17,7 +17,7 @@ parameters". Here the same search, stated:
   1/6, times the camera's exit factor), differentiated in log C_m, β_m, log C_he, log C_bc, log C_hd.
 - **The model's error** (``band_discrepancy``, on by default): what the fit's renderer misses of the
   skin it fits (variation within a pixel, the simulator's finer grid and quadrature), measured per filter
-  by rendering the demo's scene both ways on a patch of the rig's pixel size. Its spread from pixel to
+  by rendering the demo's scene both ways over the rig's window. Its spread from pixel to
   pixel counts as noise in quadrature (shared maps average it as they average noise); its mean is the
   same in every pixel, and no sharing averages it: it enters as the bias of the fit's own estimator
   (unweighted least squares, every map free, ``FilterTerms``).
@@ -606,7 +606,7 @@ def write_design(design: BandDesign, out: Path, rig=None, *, force: bool = False
         "score": design.scores, "median_expected_sd": design.bounds,
         "best_score_by_count": {str(n): s for n, s in design.by_count.items()}, "seconds": round(design.seconds, 1),
         "model_error": None if design.model_error is None else {
-            k: getattr(design.model_error, k) for k in ("patch_px", "mm_per_pixel", "seed", "seconds")},
+            k: getattr(design.model_error, k) for k in ("cube_px", "mm_per_pixel", "seed", "seconds")},
     }
     with claim_outputs(out, PRODUCTS, force=force, marker="design.json", what="band design") as staging:
         atomic_write(staging.path("rig.yaml"), ("# skinlayers design-bands: the rig with the chosen bands\n" + rig_text).encode())
@@ -633,8 +633,8 @@ def _chart(design: BandDesign, rig_bands: int, path: Path) -> Path:
         ax.plot([bands], [design.scores[name]], marker, ms=9, label=f"{name} ({bands} bands)")
     ax.set_xlabel("bands (N)")
     ax.set_ylabel("worst map's expected error / the rig's" if design.criterion == "rig" else "Σ maps' expected error")
-    ax.set_title("Expected error of the fit (noise bound" + (" + model error)" if design.model_error is not None else ")")
-                 + " against the number of filters", fontsize=10)
+    ax.set_title("The fit's expected error (noise bound" + (" + model error)" if design.model_error is not None else ")")
+                 + " against N", fontsize=10)
     ax.legend(fontsize=8)
     fig.tight_layout()
     buffer = io.BytesIO()
@@ -682,6 +682,8 @@ def design_bands_cli(
         typer.echo(f"{name:>14}: score {design.scores[name]:.3g}; median expected error {sd}")
     for kind, path in paths.items():
         typer.echo(f"{kind}: {path}")
+    typer.echo("before buying filters, photograph simulated sessions with rig.yaml and with your rig's bands and compare "
+               "the maps (docs/band_design.md: the bound and the model's error do not yet predict every rig)")
 
 
 def register(app: typer.Typer) -> None:

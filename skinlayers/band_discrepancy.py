@@ -1,19 +1,21 @@
 """The fit's model error through each filter, for ``design-bands``: what the fit's renderer misses of the skin.
 
 The bound of ``band_design`` counts the camera's noise, but the fit also misses what its model cannot
-hold: the skin varies within a cube pixel (a pixel's reflectance is the mean over its area, not the
-reflectance of its mean maps, most where blood absorbs), and the simulator renders on a finer grid, with
-every wavelength of the filter's quadrature and a tighter series. Only a render shows it, so it is
+hold: the simulator renders the skin on a finer grid, with every wavelength of the filter's quadrature,
+a tighter series and the skin beyond the window as it is, and a cube pixel's reflectance is the mean
+over its area, not the reflectance of its mean maps. Only a render shows it, so it is
 measured (``measure_discrepancy``): the demo's scene rendered as the simulator renders it
 (``SimulatedBench.render_band``: the truth grid, each filter's full quadrature, box-averaged to the cube
 grid) against the fit's own renderer (``SkinRenderer`` with the default settings, the cube grid, the
 band's three nodes and weights, ``reconstruct/problem.py``) at the truth's maps box-averaged to the cube
-grid; on a patch of ``patch_px``² cube pixels of the rig's own pixel size, the window lit as the rig lights it.
+grid; the rig's whole window, lit as the rig lights it, on a cube of ``cube_px``² pixels (the rig's own
+where it is smaller). Not on a patch of the rig's pixel size: the window's size changes the result while
+the pixel's does not (docs/band_design.md, "The model's error").
 
-Per filter, relative to the fit's render: the mean over the patch (``bias_rel``: the same in every pixel,
+Per filter, relative to the fit's render: the mean over the window (``bias_rel``: the same in every pixel,
 a systematic no sharing of a map over pixels averages away) and the standard deviation (``spread_rel``:
-different from pixel to pixel, it acts on the fit as noise does). Measured once per rig pixel size,
-filters and settings, and kept in the cache (``model/tables.default_cache_dir``).
+different from pixel to pixel, it acts on the fit as noise does). Measured once per rig window,
+filters and settings (``discrepancy``), and kept in the cache (``model/tables.default_cache_dir``).
 """
 
 from __future__ import annotations
@@ -26,27 +28,30 @@ from typing import Sequence
 
 import torch
 
-__all__ = ["DISCREPANCY_PATCH_PX", "DISCREPANCY_SEED", "Discrepancy", "discrepancy", "measure_discrepancy"]
+__all__ = ["DISCREPANCY_CUBE_PX", "DISCREPANCY_SEED", "Discrepancy", "discrepancy", "measure_discrepancy"]
 
 #: The scene's seed: the prior's (``band_design.PRIOR_SEED``); the pipeline's checks use others.
 DISCREPANCY_SEED = 20
-#: The patch's side in cube pixels (the rig's cube where it is smaller).
-DISCREPANCY_PATCH_PX = 64
+#: The side of the cube it is measured on (pixels; the rig's cube where that is smaller).
+DISCREPANCY_CUBE_PX = 64
+#: Filters rendered by one bench: the scene's absorbance is kept at every node of its filters (memory).
+DISCREPANCY_CHUNK = 6
 #: Bumped when what is measured changes: cached measurements of an older version are not used.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the whole window on a coarser cube, not a patch of the rig's pixel size
 
 
 @dataclass(frozen=True)
 class Discrepancy:
     """Per filter (``centre_nm``, ``fwhm_nm``, each ``(F,)``), the simulator's render over the fit's less 1:
-    its mean over the patch's pixels (``bias_rel``) and their standard deviation (``spread_rel``)."""
+    its mean over the window's pixels (``bias_rel``) and their standard deviation (``spread_rel``), on a
+    ``cube_px``² cube of ``mm_per_pixel``."""
 
     centre_nm: list[float]
     fwhm_nm: list[float]
     bias_rel: list[float]
     spread_rel: list[float]
     mm_per_pixel: float
-    patch_px: int
+    cube_px: int
     seed: int
     seconds: float
 
@@ -58,19 +63,19 @@ class Discrepancy:
                 torch.tensor([self.spread_rel[i] for i in rows], dtype=torch.float64))
 
 
-def _patch_rig(rig, patch_px: int):
-    """The rig cut to a ``patch_px``² window of its own pixel size, photographed by the simulator."""
+def _measuring_rig(rig, cube_px: int):
+    """The rig with its cube at most ``cube_px``² (its window unchanged), photographed by the simulator."""
     from .demo import MIN_RECTIFY_PX  # noqa: PLC0415
 
     g = rig.geometry
-    n = min(patch_px, g.cube_px)
-    geometry = {"cube_px": n, "window_mm": g.window_mm * n / g.cube_px, "rectify_px": max(2 * n, MIN_RECTIFY_PX)}
+    n = min(cube_px, g.cube_px)
+    geometry = {"cube_px": n, "rectify_px": max(2 * n, MIN_RECTIFY_PX)}
     return rig.model_copy(update={"geometry": g.model_copy(update=geometry),
                                   "camera": rig.camera.model_copy(update={"driver": "simulated"})})
 
 
 def measure_discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPANCY_SEED,
-                        patch_px: int = DISCREPANCY_PATCH_PX, device: str | torch.device = "cpu") -> Discrepancy:
+                        cube_px: int = DISCREPANCY_CUBE_PX, device: str | torch.device = "cpu") -> Discrepancy:
     """The simulator's render of the demo's scene through each filter against the fit's renderer at the
     same maps (the module docstring); minutes for a catalogue of tens of filters on two CPU cores."""
     from .acquire._optics import band_spectrum  # noqa: PLC0415
@@ -79,23 +84,27 @@ def measure_discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = 
     from .demo import demo_scene  # noqa: PLC0415
 
     start = time.perf_counter()
-    patch = _patch_rig(rig, patch_px)
-    bench = SimulatedBench(patch, scene_from_dict(demo_scene()), simulation, seed=seed, device=device)
-    s = bench.settings
-    for f in filters:  # every filter is one of the bench's bands: its spectrum as the simulator takes it
-        bench.spectra[f.centre_nm] = band_spectrum(f.centre_nm, f.fwhm_nm, s.filters.wavelength_samples, s.flash.temperature_k,
-                                                   s.sensor.sensitivity)
-    m, n, k = bench._margin_px, bench._window_px, s.truth.oversample
-    pool = lambda image: torch.nn.functional.avg_pool2d(image[:, m:m + n, m:m + n].double()[:, None], k)[:, 0]  # noqa: E731
-    truth = pool(torch.stack([bench.render_band(f.centre_nm).truth for f in filters]))  # (F, n', n')
-    maps = bench.scene_maps()
-    cube = maps.replace(**{p: pool(getattr(maps, p)) for p in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")},
-                        mm_per_pixel=patch.geometry.window_mm / patch.geometry.cube_px, absorbance=None,
-                        absorbance_wavelength_nm=None, rho_s=None)
-    fitted = _fit_render(cube, patch, filters)
-    relative = (truth / fitted - 1.0).reshape(len(filters), -1)
+    measured = _measuring_rig(rig, cube_px)
+    scene = scene_from_dict(demo_scene())
+    relative, cube = [], None
+    for first in range(0, len(filters), DISCREPANCY_CHUNK):  # a few filters a bench: the scene's maps at their nodes only
+        chunk = filters[first:first + DISCREPANCY_CHUNK]
+        bench = SimulatedBench(measured, scene, simulation, seed=seed, device=device)
+        s = bench.settings
+        bench.spectra = {f.centre_nm: band_spectrum(f.centre_nm, f.fwhm_nm, s.filters.wavelength_samples, s.flash.temperature_k,
+                                                     s.sensor.sensitivity) for f in chunk}
+        m, n, k = bench._margin_px, bench._window_px, s.truth.oversample
+        pool = lambda image: torch.nn.functional.avg_pool2d(image[:, m:m + n, m:m + n].double()[:, None], k)[:, 0]  # noqa: E731
+        truth = pool(torch.stack([bench.render_band(f.centre_nm).truth for f in chunk]))  # (F, n', n')
+        if cube is None:  # the truth's maps on the cube grid (the same scene in every bench)
+            maps = bench.scene_maps()
+            cube = maps.replace(**{p: pool(getattr(maps, p)) for p in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")},
+                                mm_per_pixel=measured.geometry.window_mm / measured.geometry.cube_px, absorbance=None,
+                                absorbance_wavelength_nm=None, rho_s=None)
+        relative.append((truth / _fit_render(cube, measured, chunk) - 1.0).reshape(len(chunk), -1))
+    relative = torch.cat(relative)
     return Discrepancy([f.centre_nm for f in filters], [f.fwhm_nm for f in filters], relative.mean(1).tolist(),
-                       relative.std(1).tolist(), cube.mm_per_pixel, patch.geometry.cube_px, seed, time.perf_counter() - start)
+                       relative.std(1).tolist(), cube.mm_per_pixel, measured.geometry.cube_px, seed, time.perf_counter() - start)
 
 
 def _fit_render(maps, rig, filters) -> torch.Tensor:
@@ -117,7 +126,7 @@ def _fit_render(maps, rig, filters) -> torch.Tensor:
     return (image.reshape(len(filters), len(BAND_WEIGHTS), *image.shape[-2:]) * weights[None, :, None, None]).sum(1).cpu()
 
 
-def discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPANCY_SEED, patch_px: int = DISCREPANCY_PATCH_PX,
+def discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPANCY_SEED, cube_px: int = DISCREPANCY_CUBE_PX,
                 device: str | torch.device = "cpu", say=None) -> Discrepancy:
     """``measure_discrepancy``, kept in the cache under everything it depends on (a second design with the
     same rig pixel size, filters and settings reads it back); ``say`` reports a measurement's start."""
@@ -127,9 +136,9 @@ def discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPA
     from .model.tables import default_cache_dir  # noqa: PLC0415
 
     settings = simulation if simulation is not None else load_simulation_settings(None)
-    patch = _patch_rig(rig, patch_px)
+    measured = _measuring_rig(rig, cube_px)
     key = json.dumps({"version": FORMAT_VERSION, "filters": [[f.centre_nm, f.fwhm_nm] for f in filters], "seed": seed,
-                      "geometry": patch.geometry.model_dump(mode="json"), "angle": rig.camera.angle_deg,
+                      "geometry": measured.geometry.model_dump(mode="json"), "angle": rig.camera.angle_deg,
                       "simulation": settings.model_dump(mode="json"), "model": ModelSettings().model_dump(mode="json")},
                      sort_keys=True)
     path = default_cache_dir() / "band_discrepancy" / (hashlib.sha256(key.encode()).hexdigest()[:24] + ".json")
@@ -139,6 +148,6 @@ def discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPA
         pass  # not measured yet (or an unreadable file): measure it
     if say is not None:
         say(f"measuring the fit's model error through {len(filters)} filters (once for this rig and catalogue; minutes)")
-    found = measure_discrepancy(rig, filters, simulation=settings, seed=seed, patch_px=patch_px, device=device)
+    found = measure_discrepancy(rig, filters, simulation=settings, seed=seed, cube_px=cube_px, device=device)
     atomic_write(path, json.dumps(asdict(found)).encode())
     return found

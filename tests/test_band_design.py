@@ -126,16 +126,16 @@ def test_the_model_error_is_measured_where_the_skin_varies_and_kept(tmp_path, mo
 
     monkeypatch.setenv("SKINLAYERS_CACHE", str(tmp_path))
     filters = [Filter(450.0, 10.0), Filter(560.0, 10.0), Filter(700.0, 10.0)]
-    found = band_discrepancy.discrepancy(load_rig(), filters, patch_px=16)
+    found = band_discrepancy.discrepancy(load_rig(), filters, cube_px=16)
     bias, spread = found.at(filters)
-    assert found.patch_px == 16 and found.mm_per_pixel == pytest.approx(load_rig().geometry.window_mm / load_rig().geometry.cube_px)
+    assert found.cube_px == 16 and found.mm_per_pixel == pytest.approx(load_rig().geometry.window_mm / 16)
     assert bool(spread[1] > 3 * spread[2]) and bool((bias.abs() < 0.05).all()), (bias, spread)
 
     def refuse(*args, **kwargs):
         raise AssertionError("measured again")
 
     monkeypatch.setattr(band_discrepancy, "measure_discrepancy", refuse)
-    assert band_discrepancy.discrepancy(load_rig(), filters, patch_px=16) == found
+    assert band_discrepancy.discrepancy(load_rig(), filters, cube_px=16) == found
 
 
 def test_an_rgb_camera_cannot_determine_the_five_maps():
