@@ -32,7 +32,8 @@ parameters". Here the same search, stated:
   scene spreads it (log-normal, ``SPREAD``), ``PRIOR_SAMPLES`` skins a row, from a fixed seed.
 - **The search** (``search``): every combination where there are at most ``EXHAUSTIVE_LIMIT``; beyond,
   Fedorov's exchange from ``EXCHANGE_STARTS`` random sets (swap a chosen filter for one not chosen while
-  the score falls).
+  the score falls) and, counting up (``search_counts``), from the best set one smaller with its best
+  further filter.
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ import numpy as np
 import torch
 import typer
 
+from .band_discrepancy import Discrepancy
 from .formats.errors import InputError
 
 __all__ = ["CATALOGUE_DEFAULT", "CRITERIA", "BandDesign", "Criterion", "Filter", "FilterTerms", "Radiometry", "band_jacobian",
@@ -294,7 +296,7 @@ def _from_u(u: torch.Tensor) -> torch.Tensor:
     return torch.cat([p[:, :1], u[:, 1:2], p[:, 2:]], dim=1)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FilterTerms:
     """Each filter's share of a set's bound on each skin of the prior: the Fisher information ``(F, M, 5, 5)``
     (J Jᵀ / σ², σ the calibrated reflectance's noise, and the model's spread beside it), and for the
@@ -334,6 +336,8 @@ def rgb_terms(radiometry: Radiometry, skins: torch.Tensor, model_error: bool) ->
 
 def _joined(a: FilterTerms, b: FilterTerms) -> FilterTerms:
     """The filters of ``a`` then those of ``b``."""
+    if (a.normal is None) != (b.normal is None):
+        raise ValueError("both sets of filters need the model's error, or neither")
     join = lambda x, y: None if x is None else torch.cat([x, y])  # noqa: E731
     return FilterTerms(join(a.information, b.information), join(a.normal, b.normal), join(a.projected, b.projected))
 
@@ -462,7 +466,8 @@ class SearchResult:
 def exhaustive_search(criterion: Criterion, count: int) -> SearchResult:
     """Every combination of ``count`` filters, scored in batches of ``SCORE_BATCH_BYTES``; the best."""
     start = time.perf_counter()
-    batch = max(1, SCORE_BATCH_BYTES // (count * criterion.information[0].numel() * 8))
+    per_filter = criterion.information[0].numel() * (1 if criterion.terms.normal is None else 2.2)  # the bias: J Jᵀ and J b too
+    batch = max(1, int(SCORE_BATCH_BYTES // (count * per_filter * 8)))
     best, best_score, evaluated = None, math.inf, 0
     combos = itertools.combinations(range(criterion.candidates), count)
     while chunk := list(itertools.islice(combos, batch)):
@@ -541,15 +546,15 @@ class BandDesign:
     scores: dict[str, float]
     by_count: dict[int, float]
     seconds: float
-    model_error: object | None = None  # the ``band_discrepancy.Discrepancy`` the criterion used, None: noise alone
+    model_error: Discrepancy | None = None  # the model's error the criterion used; None: the noise alone
 
 
 def design_bands(catalogue: Sequence[Filter], count: int, rig=None, kind: str = "rig", *, model_error: bool = True,
                  say=None) -> BandDesign:
     """Search the catalogue for ``count`` filters by the criterion ``kind`` (the module docstring), compare
     with the rig's own bands and evenly spaced ones, and chart the best score against the count.
-    ``model_error``: the fit's model error beside the noise (``band_discrepancy``; measured once per rig
-    pixel size and catalogue, minutes, then cached; ``say`` announces it)."""
+    ``model_error``: the fit's model error beside the noise (``band_discrepancy``; each filter measured once
+    per rig window, a minute or two for a catalogue, then cached; ``say`` announces it)."""
     from .band_discrepancy import discrepancy  # noqa: PLC0415
 
     start = time.perf_counter()

@@ -15,7 +15,7 @@ the pixel's does not (docs/band_design.md, "The model's error").
 Per filter, relative to the fit's render: the mean over the window (``bias_rel``: the same in every pixel,
 a systematic no sharing of a map over pixels averages away) and the standard deviation (``spread_rel``:
 different from pixel to pixel, it acts on the fit as noise does). Measured once per rig window,
-filters and settings (``discrepancy``), and kept in the cache (``model/tables.default_cache_dir``).
+filters and settings (``discrepancy``), each filter kept in the cache (``model/tables.default_cache_dir``).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Sequence
 
 import torch
@@ -44,7 +44,7 @@ FORMAT_VERSION = 2  # 2: the whole window on a coarser cube, not a patch of the 
 class Discrepancy:
     """Per filter (``centre_nm``, ``fwhm_nm``, each ``(F,)``), the simulator's render over the fit's less 1:
     its mean over the window's pixels (``bias_rel``) and their standard deviation (``spread_rel``), on a
-    ``cube_px``² cube of ``mm_per_pixel``."""
+    ``cube_px``² cube of ``mm_per_pixel``; ``seconds`` spent measuring (0: all read from the cache)."""
 
     centre_nm: list[float]
     fwhm_nm: list[float]
@@ -84,27 +84,41 @@ def measure_discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = 
     from .demo import demo_scene  # noqa: PLC0415
 
     start = time.perf_counter()
+    filters = list(dict.fromkeys(filters))
     measured = _measuring_rig(rig, cube_px)
     scene = scene_from_dict(demo_scene())
-    relative, cube = [], None
-    for first in range(0, len(filters), DISCREPANCY_CHUNK):  # a few filters a bench: the scene's maps at their nodes only
-        chunk = filters[first:first + DISCREPANCY_CHUNK]
+    rows, cube = {}, None
+    for chunk in _chunks(filters):  # a few filters a bench: the scene's maps at their nodes only
         bench = SimulatedBench(measured, scene, simulation, seed=seed, device=device)
         s = bench.settings
         bench.spectra = {f.centre_nm: band_spectrum(f.centre_nm, f.fwhm_nm, s.filters.wavelength_samples, s.flash.temperature_k,
                                                      s.sensor.sensitivity) for f in chunk}
         m, n, k = bench._margin_px, bench._window_px, s.truth.oversample
         pool = lambda image: torch.nn.functional.avg_pool2d(image[:, m:m + n, m:m + n].double()[:, None], k)[:, 0]  # noqa: E731
-        truth = pool(torch.stack([bench.render_band(f.centre_nm).truth for f in chunk]))  # (F, n', n')
+        truth = pool(torch.stack([bench.render_band(f.centre_nm).truth for f in chunk])).cpu()  # (F, n', n')
         if cube is None:  # the truth's maps on the cube grid (the same scene in every bench)
             maps = bench.scene_maps()
             cube = maps.replace(**{p: pool(getattr(maps, p)) for p in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")},
                                 mm_per_pixel=measured.geometry.window_mm / measured.geometry.cube_px, absorbance=None,
                                 absorbance_wavelength_nm=None, rho_s=None)
-        relative.append((truth / _fit_render(cube, measured, chunk) - 1.0).reshape(len(chunk), -1))
-    relative = torch.cat(relative)
+        for f, r in zip(chunk, (truth / _fit_render(cube, measured, chunk) - 1.0).reshape(len(chunk), -1)):
+            rows[f] = r
+    relative = torch.stack([rows[f] for f in filters])
     return Discrepancy([f.centre_nm for f in filters], [f.fwhm_nm for f in filters], relative.mean(1).tolist(),
                        relative.std(1).tolist(), cube.mm_per_pixel, measured.geometry.cube_px, seed, time.perf_counter() - start)
+
+
+def _chunks(filters: Sequence) -> list[list]:
+    """``filters`` (distinct) in groups of at most ``DISCREPANCY_CHUNK``, no two of a group with the same
+    centre (a bench keeps a band's spectrum and render by its centre)."""
+    chunks: list[list] = []
+    for f in filters:
+        group = next((c for c in chunks if len(c) < DISCREPANCY_CHUNK and all(g.centre_nm != f.centre_nm for g in c)), None)
+        if group is None:
+            chunks.append([f])
+        else:
+            group.append(f)
+    return chunks
 
 
 def _fit_render(maps, rig, filters) -> torch.Tensor:
@@ -128,26 +142,39 @@ def _fit_render(maps, rig, filters) -> torch.Tensor:
 
 def discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPANCY_SEED, cube_px: int = DISCREPANCY_CUBE_PX,
                 device: str | torch.device = "cpu", say=None) -> Discrepancy:
-    """``measure_discrepancy``, kept in the cache under everything it depends on (a second design with the
-    same rig pixel size, filters and settings reads it back); ``say`` reports a measurement's start."""
+    """``measure_discrepancy`` of ``filters`` (distinct), each filter kept in the cache under everything its
+    measurement depends on (the rig's window and camera angle, the scene, seed, simulation and model
+    settings): a later design reads back the filters measured before and measures the others only;
+    ``say`` reports a measurement's start."""
     from .acquire.simulation_settings import load_simulation_settings  # noqa: PLC0415
+    from .demo import demo_scene  # noqa: PLC0415
     from .formats.files import atomic_write  # noqa: PLC0415
     from .model.settings import ModelSettings  # noqa: PLC0415
     from .model.tables import default_cache_dir  # noqa: PLC0415
 
+    filters = list(dict.fromkeys(filters))
     settings = simulation if simulation is not None else load_simulation_settings(None)
     measured = _measuring_rig(rig, cube_px)
-    key = json.dumps({"version": FORMAT_VERSION, "filters": [[f.centre_nm, f.fwhm_nm] for f in filters], "seed": seed,
-                      "geometry": measured.geometry.model_dump(mode="json"), "angle": rig.camera.angle_deg,
-                      "simulation": settings.model_dump(mode="json"), "model": ModelSettings().model_dump(mode="json")},
-                     sort_keys=True)
-    path = default_cache_dir() / "band_discrepancy" / (hashlib.sha256(key.encode()).hexdigest()[:24] + ".json")
-    try:
-        return Discrepancy(**json.loads(path.read_text()))
-    except (OSError, ValueError, TypeError):
-        pass  # not measured yet (or an unreadable file): measure it
-    if say is not None:
-        say(f"measuring the fit's model error through {len(filters)} filters (once for this rig and catalogue; minutes)")
-    found = measure_discrepancy(rig, filters, simulation=settings, seed=seed, cube_px=cube_px, device=device)
-    atomic_write(path, json.dumps(asdict(found)).encode())
-    return found
+    key = json.dumps({"version": FORMAT_VERSION, "seed": seed, "geometry": measured.geometry.model_dump(mode="json"),
+                      "angle": rig.camera.angle_deg, "scene": demo_scene(), "simulation": settings.model_dump(mode="json"),
+                      "model": ModelSettings().model_dump(mode="json")}, sort_keys=True)
+    folder = default_cache_dir() / "band_discrepancy" / hashlib.sha256(key.encode()).hexdigest()[:24]
+    path = lambda f: folder / f"{f.centre_nm:.6g}nm-{f.fwhm_nm:.6g}nm.json"  # noqa: E731
+    kept, seconds = {}, 0.0
+    for f in filters:
+        try:
+            kept[f] = json.loads(path(f).read_text())
+        except (OSError, ValueError):
+            pass  # not measured yet (or an unreadable file): measured below
+    missing = [f for f in filters if f not in kept]
+    if missing:
+        if say is not None:
+            say(f"measuring the fit's model error through {len(missing)} filters (once for this rig window; minutes)")
+        found = measure_discrepancy(rig, missing, simulation=settings, seed=seed, cube_px=cube_px, device=device)
+        for f, bias, spread in zip(missing, found.bias_rel, found.spread_rel):
+            kept[f] = {"bias_rel": bias, "spread_rel": spread}
+            atomic_write(path(f), json.dumps(kept[f]).encode())
+        seconds = found.seconds
+    return Discrepancy([f.centre_nm for f in filters], [f.fwhm_nm for f in filters], [kept[f]["bias_rel"] for f in filters],
+                       [kept[f]["spread_rel"] for f in filters], measured.geometry.window_mm / measured.geometry.cube_px,
+                       measured.geometry.cube_px, seed, seconds)

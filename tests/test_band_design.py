@@ -71,6 +71,20 @@ def test_the_search_finds_the_known_optimum():
         assert exchange_search(criterion, 4, starts=3).chosen == (1, 2, 3, 4)
 
 
+def test_counting_up_by_exchange_finds_the_known_optimum(monkeypatch):
+    """``search_counts`` by the exchange alone (the exhaustive limit set to nothing), two random starts: the
+    known optimum of four, reached at five from the best four extended (a superset of the optimum)."""
+    from skinlayers import band_design
+    from skinlayers.band_design import Criterion, search_counts
+
+    monkeypatch.setattr(band_design, "EXHAUSTIVE_LIMIT", 0)
+    monkeypatch.setattr(band_design, "EXCHANGE_STARTS", 2)
+    criterion = Criterion(_constructed_information(), torch.ones(5, dtype=torch.float64), "targets")
+    found = search_counts(criterion, [4, 5])
+    assert found[4].method == "exchange" and found[4].chosen == (1, 2, 3, 4)
+    assert set(found[5].chosen) >= {1, 2, 3, 4} and found[5].score <= found[4].score
+
+
 def test_the_exchange_agrees_with_the_exhaustive_search_on_random_catalogues():
     from skinlayers.band_design import Criterion, exchange_search, exhaustive_search
 
@@ -134,8 +148,18 @@ def test_the_model_error_is_measured_where_the_skin_varies_and_kept(tmp_path, mo
     def refuse(*args, **kwargs):
         raise AssertionError("measured again")
 
+    real, asked = band_discrepancy.measure_discrepancy, []
+
+    def record(rig, wanted, **kwargs):
+        asked.extend(wanted)
+        return real(rig, wanted, **kwargs)
+
     monkeypatch.setattr(band_discrepancy, "measure_discrepancy", refuse)
-    assert band_discrepancy.discrepancy(load_rig(), filters, cube_px=16) == found
+    again = band_discrepancy.discrepancy(load_rig(), filters, cube_px=16)
+    assert (again.bias_rel, again.spread_rel, again.seconds) == (found.bias_rel, found.spread_rel, 0.0)
+    monkeypatch.setattr(band_discrepancy, "measure_discrepancy", record)
+    more = band_discrepancy.discrepancy(load_rig(), [filters[1], Filter(560.0, 20.0)], cube_px=16)  # same centre, wider
+    assert asked == [Filter(560.0, 20.0)] and more.bias_rel[0] == found.bias_rel[1]
 
 
 def test_an_rgb_camera_cannot_determine_the_five_maps():
@@ -238,6 +262,32 @@ def test_the_command_writes_a_rig_that_loads(tmp_path, run_cli):
     assert [b.iso for b in rig.bands] == [f["iso"] for f in record["chosen"]] and (tmp_path / "d" / "bound_vs_count.png").is_file()
     code, _, err = run_cli("design-bands", "--count", "12", "-o", str(tmp_path / "e"))
     assert code == 1 and "--count 12" in err
+
+
+def test_the_command_weighs_the_model_error_by_default(tmp_path, run_cli, monkeypatch):
+    """The default path: the model's error (a stand-in marking one filter of the noise-only choice as badly
+    modelled) enters the criterion, the record says so, and that filter is left out."""
+    import json
+
+    from skinlayers import band_discrepancy
+
+    catalogue = tmp_path / "filters.csv"
+    catalogue.write_text("centre_nm,fwhm_nm\n" + "".join(f"{c},10\n" for c in range(420, 660, 20)))  # 12 filters
+    chosen = lambda folder: [f["centre_nm"] for f in json.loads((folder / "design.json").read_text())["chosen"]]  # noqa: E731
+    code, _, err = run_cli("design-bands", "--catalog", str(catalogue), "--count", "6", "--noise-only", "-o", str(tmp_path / "e"))
+    assert code == 0, err
+    bad = chosen(tmp_path / "e")[2]
+
+    def stand_in(rig, filters, **kwargs):
+        bias = [-0.3 if f.centre_nm == bad else 0.0 for f in filters]
+        return band_discrepancy.Discrepancy([f.centre_nm for f in filters], [f.fwhm_nm for f in filters], bias,
+                                            [0.001] * len(filters), 0.1, 64, 20, 0.0)
+
+    monkeypatch.setattr(band_discrepancy, "discrepancy", stand_in)
+    code, _, err = run_cli("design-bands", "--catalog", str(catalogue), "--count", "6", "-o", str(tmp_path / "d"))
+    assert code == 0, err
+    record = json.loads((tmp_path / "d" / "design.json").read_text())
+    assert record["model_error"]["cube_px"] == 64 and bad not in chosen(tmp_path / "d")
 
 
 def test_a_design_is_not_written_over_an_earlier_one(tmp_path):
