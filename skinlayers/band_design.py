@@ -658,7 +658,7 @@ def design_bands_cli(
     out: Path = typer.Option(Path("design-bands"), "-o", "--out", help="Folder for design.json, rig.yaml and the chart."),
     force: bool = typer.Option(False, "--force", help="Replace an earlier design in the output folder."),
     model_error: bool = typer.Option(True, "--model-error/--noise-only", help="Weigh the fit's model error beside the "
-                                     "camera's noise (measured by rendering once per rig and catalogue, minutes; cached)."),
+                                     "camera's noise (each filter rendered once per rig window, a minute or two a catalogue; cached)."),
 ) -> None:
     """Choose the rig's filters from a catalogue by the fit's expected error: its Cramér–Rao bound and its model's error (DWRR08 §5).
 
