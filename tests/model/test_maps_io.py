@@ -99,3 +99,11 @@ def test_edits():
         apply_edit(maps, "water*2")
     with pytest.raises(MapsError, match="channel C_m spans 2–2, outside its physical range"):
         apply_edit(maps, "melanin*100")
+
+
+def test_render_refuses_a_non_numeric_pixel_size_in_one_line(tmp_path, run_cli):
+    """The render's memory plan reads the maps' header before the maps' reader does: a non-numeric
+    mm_per_pixel is refused there in the reader's words, not a traceback."""
+    path = write_exr(tmp_path / "maps.exr", channels(), {"mm_per_pixel": "abc"})
+    code, _, err = run_cli("render", str(path), "-o", str(tmp_path / "out"))
+    assert code == 1 and "header attribute mm_per_pixel must be a number" in err and "Traceback" not in err
