@@ -305,9 +305,13 @@ class SimulatedBench:
     def truth_reflectance(self) -> torch.Tensor:
         """The true reflectance factor per band on the calibrated cube grid ``(L, cube_px, cube_px)``:
         the window's truth box-averaged from the truth grid."""
+        return self.on_cube(torch.stack([self.render_band(b.wavelength_nm).truth for b in self.rig.bands]))
+
+    def on_cube(self, images: torch.Tensor) -> torch.Tensor:
+        """Truth-grid images ``(L, N, N)`` (window and margin) cut to the window and box-averaged to the
+        calibrated cube grid ``(L, cube_px, cube_px)``, float64."""
         m, n, k = self._margin_px, self._window_px, self.settings.truth.oversample
-        cubes = [self.render_band(b.wavelength_nm).truth[m:m + n, m:m + n] for b in self.rig.bands]
-        return torch.nn.functional.avg_pool2d(torch.stack(cubes)[:, None].double(), k)[:, 0]
+        return torch.nn.functional.avg_pool2d(images[:, m:m + n, m:m + n].double()[:, None], k)[:, 0]
 
     def truth_std_error(self) -> torch.Tensor | None:
         """The truth's Monte Carlo standard error on the cube grid ``(L, cube_px, cube_px)`` (pixels of the

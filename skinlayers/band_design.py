@@ -199,7 +199,7 @@ class Radiometry:
         exposure by the rig's rule with the aperture stopped down where the lowest ISO saturates."""
         signal = self._rgb_weights()[1].sum(1) * RGB_STEP_NM  # ∫ flash × sensitivity dλ, as a filter's channel signal
         electrons = self.white_electrons * signal / self.reference_signal
-        spectralon = self.rig.targets.spectralon_at(550.0) * self.rig.polarization.spectralon_factor
+        spectralon = self.spectralon(Filter(550.0, 10.0))
         iso, share = self._exposure(float(electrons.max()) * spectralon)
         photosites = (1, 2, 1)
         return torch.stack([self._ratio_sd(share * electrons[c] * n, n, spectralon, iso, reflectance[:, c])
@@ -279,7 +279,8 @@ def weighted_jacobian(skins: torch.Tensor, nodes_nm: torch.Tensor, weights: torc
     o = model.settings.optics
     exit = exit_factor(o.n_epidermis, o.n_above, math.cos(math.radians(view_angle_deg)))
     u = _to_u(skins).requires_grad_(True)
-    reflectance = model.diffuse_reflectance(SkinParams.from_tensor(_from_u(u)), nodes_nm.reshape(-1)).reshape(len(skins), *nodes_nm.shape)
+    distinct, where = torch.unique(nodes_nm, return_inverse=True)  # the RGB channels share their wavelengths
+    reflectance = model.diffuse_reflectance(SkinParams.from_tensor(_from_u(u)), distinct)[:, where]  # (M, F, K)
     band = exit * (reflectance * weights).sum(-1)  # (M, F)
     jac = torch.stack([torch.autograd.grad(band[:, j].sum(), u, retain_graph=True)[0] for j in range(nodes_nm.shape[0])], dim=1)
     return band.detach(), jac

@@ -93,12 +93,10 @@ def measure_discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = 
         s = bench.settings
         bench.spectra = {f.centre_nm: band_spectrum(f.centre_nm, f.fwhm_nm, s.filters.wavelength_samples, s.flash.temperature_k,
                                                      s.sensor.sensitivity) for f in chunk}
-        m, n, k = bench._margin_px, bench._window_px, s.truth.oversample
-        pool = lambda image: torch.nn.functional.avg_pool2d(image[:, m:m + n, m:m + n].double()[:, None], k)[:, 0]  # noqa: E731
-        truth = pool(torch.stack([bench.render_band(f.centre_nm).truth for f in chunk])).cpu()  # (F, n', n')
+        truth = bench.on_cube(torch.stack([bench.render_band(f.centre_nm).truth for f in chunk])).cpu()  # (F, n', n')
         if cube is None:  # the truth's maps on the cube grid (the same scene in every bench)
             maps = bench.scene_maps()
-            cube = maps.replace(**{p: pool(getattr(maps, p)) for p in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")},
+            cube = maps.replace(**{p: bench.on_cube(getattr(maps, p)) for p in ("C_m", "beta_m", "C_he", "C_bc", "C_hd")},
                                 mm_per_pixel=measured.geometry.window_mm / measured.geometry.cube_px, absorbance=None,
                                 absorbance_wavelength_nm=None, rho_s=None)
         for f, r in zip(chunk, (truth / _fit_render(cube, measured, chunk) - 1.0).reshape(len(chunk), -1)):
