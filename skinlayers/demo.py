@@ -61,7 +61,8 @@ def session_rig(size: int):
 def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> dict:
     """Fitted maps against the simulation's truth (``truth/maps.exr`` box-averaged to the fit's grid):
     per parameter the median error over the pixels in the fit (relative; β_m absolute), the truth's
-    and the fit's medians and the fit's median uncertainty; the residual RMS beside the cube's noise
+    and the fit's medians, the fit's median uncertainty and its coverage (``sigma_coverage``: the share of
+    those pixels whose truth lies within ±2σ of the fit); the residual RMS beside the cube's noise
     RMS (the cube against ``truth/reflectance.exr``, the noise floor), both over the same pixels and
     the bands the fit used. Pixels flagged for a high residual (hairs and
     veins, which the fit leaves to the residual) are counted out, and the count is given."""
@@ -80,9 +81,21 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
     summary = json.loads((reconstruction / "fit.json").read_text())
     out: dict = {"pixels": int(keep.sum()), "high_residual_pixels": int(((flags >> FLAG_BITS["high_residual"]) & 1).sum()),
                  "parameters": map_errors(truth, fit, keep)}
+    sigmas = {name: channels.get(f"sigma_{name}") for name in out["parameters"]}
+    covered = [n for n, v in sigmas.items() if v is not None]
+    coverage = {}
+    if covered:
+        from .model import PARAMETER_NAMES  # noqa: PLC0415
+
+        stack = torch.full((len(PARAMETER_NAMES), *keep.shape), float("nan"), dtype=torch.float64)
+        for name in covered:
+            stack[PARAMETER_NAMES.index(name)] = torch.as_tensor(np.asarray(sigmas[name]), dtype=torch.float64)
+        coverage = sigma_coverage(truth, fit, stack, keep, covered)
     for name, entry in out["parameters"].items():
-        sigma = channels.get(f"sigma_{name}")
+        sigma = sigmas[name]
         entry["sigma_median"] = float(np.nanmedian(np.asarray(sigma)[keep.numpy()])) if sigma is not None else None
+        # the share of scored pixels whose truth lies within ±2σ of the fit (0.95 for an honest normal σ)
+        entry["sigma_coverage"] = coverage.get(name)
         entry["determined"] = summary["parameters"][name].get("determined", True)
     cube_channels, _ = read_exr(cube)
     truth_r, _ = read_exr(session / "truth" / "reflectance.exr")
@@ -196,7 +209,8 @@ def demo(
     physics: str = typer.Option(
         "diffusion", "--physics",
         help="The simulated skin's light transport: diffusion (the fit's own model) or transport (the Monte Carlo reference: "
-             "the fit measured on physics it did not make; slow, use --size 32).",
+             "the fit measured on physics it did not make; slow, use --size 32; --size 64 with --seed 61, 62 or 63 photographs "
+             "the shipped render).",
     ),
     photons: Optional[int] = typer.Option(None, "--photons", help="--physics transport: photons per wavelength node of each band."),
     threads: Optional[str] = typer.Option(None, "--threads", help=THREADS_HELP),
@@ -216,6 +230,7 @@ def demo(
     session, calibrated, reconstruction = folder / "session", folder / "calibrated", folder / "reconstruction"
     rig = session_rig(size)
     (folder / "rig.yaml").write_text(yaml.safe_dump(rig.model_dump(mode="json"), sort_keys=False))
+    scene_given = scene is not None
     if scene is None:
         scene = folder / "scene.yaml"
         scene.write_text(yaml.safe_dump(demo_scene(), sort_keys=False))
@@ -226,7 +241,8 @@ def demo(
         return time.perf_counter()
 
     t = step(f"1/4 capture (simulated rig, seed {seed}) → {session}")
-    simulate_session(session, rig, scene, seed, device, truth)
+    kept = _shipped_renders(truth, seed, size, scene_given)
+    simulate_session(session, rig, scene, seed, device, truth, kept_renders=kept)
     times["capture_s"] = time.perf_counter() - t
     t = step(f"2/4 calibrate → {calibrated}")
     _calibrate(session, calibrated)
@@ -241,6 +257,23 @@ def demo(
     _figure(session, reconstruction, folder / "truth_vs_fit.png")
     _print_accuracy(accuracy)
     _print_folder(folder, session, calibrated / CUBE_NAME, reconstruction, times)
+
+
+def _shipped_renders(truth: dict, seed: int, size: int, scene_given: bool) -> dict | None:
+    """With ``--physics transport`` on the demo's scene: the shipped Monte Carlo of this seed and size
+    (``skinlayers.truths``), photographed anew instead of walking the photons again; else None."""
+    if truth.get("physics") != "transport" or scene_given:
+        return None
+    from .truths import shipped_session  # noqa: PLC0415
+
+    shipped = shipped_session(seed, size, truth.get("photons"))
+    if shipped is None:
+        return None
+    record, kept = shipped
+    truth["photons"] = record["photons_per_node"]
+    typer.echo(f"the skin: the shipped Monte Carlo render of seed {seed} ({record['photons_per_node']:,} photons a node, "
+               f"made in {record['seconds']:.0f} s), photographed anew", err=True)
+    return kept
 
 
 def _checked_options(out: Path | None, size: int, device: str, scene: Path | None, physics: str,
@@ -320,14 +353,15 @@ def _print_accuracy(accuracy: dict) -> None:
     from rich.table import Table  # noqa: PLC0415
 
     table = Table(title=f"fit against truth ({accuracy['pixels']} px; {accuracy['high_residual_pixels']} high-residual px left out)")
-    for column in ("parameter", "truth median", "fit median", "median error", "median σ"):
+    for column in ("parameter", "truth median", "fit median", "median error", "median σ", "truth within ±2σ"):
         table.add_column(column, justify="right")
     for name, p in accuracy["parameters"].items():
         error = f"{100 * p['median_error']:.1f}%" if p["error_kind"] == "relative" else f"{p['median_error']:.3f}"
         sigma = "" if p["sigma_median"] is None else f"{p['sigma_median']:.3g}"
+        cover = "" if p.get("sigma_coverage") is None else f"{100 * p['sigma_coverage']:.0f}%"
         if not p.get("determined", True):
-            sigma = "undetermined"
-        table.add_row(name, f"{p['truth_median']:.4g}", f"{p['fit_median']:.4g}", error, sigma)
+            sigma, cover = "undetermined", ""
+        table.add_row(name, f"{p['truth_median']:.4g}", f"{p['fit_median']:.4g}", error, sigma, cover)
     console = Console()
     console.print(table)
     noise = accuracy.get("cube_noise_rms")

@@ -10,7 +10,8 @@ measured and resumed on a rerun), then the Pareto fronts, a summary (``tradeoff.
 - **inverse**: the fit's choices (``INVERSE_CONFIGS``: method, start, ``--model``, physics, levels,
   tolerance, map grids, precision, cube binning) on simulated sessions through the rig and the
   calibration, some rendered by the model at higher fidelity than the fit's, some by the transport
-  reference; each map's median error against the truth and the residual against the cube's noise;
+  reference; each map's median error against the truth, the share of scored pixels whose truth lies
+  within ±2σ of the fit (``sigma_coverage_<map>``) and the residual against the cube's noise;
 - **scale**: the default and the paper's fit against the cube's size, with the fitted exponent
   (time ∝ pixels^k).
 
@@ -73,7 +74,8 @@ PAPER_STEPS = 300
 #: step costs 1 + N_PARAMS renders, so 300 steps are minutes a session: docs/tradeoff.md, "What is
 #: swept, and against which truth").
 QUICK_PAPER_STEPS = 200
-QUICK_PAPER_TRUTHS = ("transport",)
+#: On the 32² diffusion session: the Monte Carlo's is 64², where 200 steps take four times as long.
+QUICK_PAPER_TRUTHS = ("diffusion",)
 #: The scale sweep's paper: its time per step is what grows with the cube (the steps do not), so it runs
 #: SCALE_PAPER_STEPS steps (no convergence test) and its time is per that many steps.
 SCALE_PAPER_STEPS = 10
@@ -85,7 +87,15 @@ INVERSE_CONFIGS: dict[str, dict] = {
     "paper": {"method": "paper-fd", "start": "paper", "forward": "heterogeneous", "map_cell_mm": _ALL_PER_PIXEL,
               "free_scale": True, "robust_passes": 0, "max_iterations": PAPER_STEPS // FIRST_ORDER_CAP},
     "paper model, gn-hom": {"forward": "heterogeneous", "map_cell_mm": _ALL_PER_PIXEL, "free_scale": True},
+    "diffusion": {"model": {"profiles": "diffusion"}},
     "transport": {"model": {"profiles": "transport"}},
+    # under transport a dermal-blood change spreads its light over 1.3–2 mm (docs/transport.md): C_hd on
+    # nodes the light can tell apart, and the coupling that draws that spread
+    "transport, C_hd 0.75 mm": {"model": {"profiles": "transport"}, "map_cell_mm": {"C_hd": 0.75}},
+    "transport, segment": {"model": {"profiles": "transport", "render": {"coupling": "segment"}}},
+    "transport, segment, C_hd 0.75 mm": {"model": {"profiles": "transport", "render": {"coupling": "segment"}},
+                                         "map_cell_mm": {"C_hd": 0.75}},
+    "transport, grids auto": {"model": {"profiles": "transport"}, "map_grids": "auto", "forward": "heterogeneous"},
     "gn": {"method": "gn", "forward": "heterogeneous"},
     "adam": {"method": "adam", "forward": "heterogeneous"},
     "start paper": {"start": "paper"},
@@ -107,7 +117,8 @@ SCALE_CONFIGS: dict[str, dict] = {
     f"paper, {SCALE_PAPER_STEPS} steps": {**{k: v for k, v in INVERSE_CONFIGS["paper"].items() if k != "max_iterations"},
                                           "max_iterations": SCALE_PAPER_STEPS // FIRST_ORDER_CAP, "ftol": 1e-12},
 }
-QUICK_INVERSE = ("default", "fixed", "homogeneous", "paper", "transport", "ftol 1e-2", "binned 2x2")
+QUICK_INVERSE = ("default", "fixed", "homogeneous", "paper", "diffusion", "transport", "transport, C_hd 0.75 mm", "transport, segment",
+                 "ftol 1e-2", "binned 2x2")
 QUICK_SCALE_PX = (32, 64)
 #: Marked on the charts.
 MARKED = {"default": "default (--model auto)", "fixed": "--model fixed", "paper": "DWRR08's scheme"}
@@ -120,7 +131,7 @@ DIFFUSION_SEED_BASE = 61
 KNOBS = ("physics", "coupling", "gaussians", "series_tolerance", "blur", "border_mm", "dtype", "method", "start", "model",
          "coarsest_px", "ftol", "map_grids", "map_cells", "free_scale", "robust_passes", "max_iterations", "bin")
 COLUMNS = ("part", "config", "scene", "truth", "size_px", *KNOBS, "wall_s", "cpu_s", "peak_mb",
-           *(f"error_{m}" for m in MAPS), "score", "error_vs_mc", "mc_std_error", "error_vs_own", "residual_over_noise", "band_bias_max",
+           *(f"error_{m}" for m in MAPS), "score", *(f"sigma_coverage_{m}" for m in TARGETS), "error_vs_mc", "mc_std_error", "error_vs_own", "residual_over_noise", "band_bias_max",
            "converged", "iterations", "pareto")
 KEY = ("part", "config", "scene")
 
@@ -166,16 +177,17 @@ TradeoffResult = AnalysisResult
 
 
 def make_plan(quick: bool = False, seed: int = 0, cube: Path | None = None) -> TradeoffPlan:
-    """The quick run: the renderer's main choices, one session of each physics at 32², scale to 64²;
-    the full run: every choice, three sessions of each physics, scale to 512²."""
-    from .truths import SESSION_PX, SESSION_SEEDS  # noqa: PLC0415
+    """The quick run: the renderer's main choices, one session of each physics (diffusion at 32², the
+    Monte Carlo at 64², the size a user fits), scale to 64²; the full run: every choice, three sessions of
+    each physics, scale to 512²."""
+    from .truths import SESSION_PX, SESSION_PX_64, SESSION_SEEDS_64  # noqa: PLC0415
 
     n = 1 if quick else 3
     configs = _all_configs()
     if quick:
         configs["paper"] = {**configs["paper"], "max_iterations": QUICK_PAPER_STEPS // FIRST_ORDER_CAP}
     sessions = [SessionSpec("diffusion", DIFFUSION_SEED_BASE + seed + i, SESSION_PX) for i in range(n)]
-    sessions += [SessionSpec("transport", s, SESSION_PX) for s in SESSION_SEEDS[:n]]
+    sessions += [SessionSpec("transport", s, SESSION_PX_64) for s in SESSION_SEEDS_64[:n]]
     return TradeoffPlan(
         forward=list(QUICK_FORWARD if quick else FORWARD_CONFIGS),
         inverse=list(QUICK_INVERSE if quick else INVERSE_CONFIGS) if cube is None else [FAITHFUL, *(QUICK_INVERSE if quick else INVERSE_CONFIGS)],
@@ -479,19 +491,22 @@ def _against_truth(fit, cube, session: Path, k: int) -> dict:
     residual), and the residual's RMS over the cube's noise against its true reflectance."""
     import torch.nn.functional as F  # noqa: PLC0415
 
-    from .demo import map_errors, scored_pixels  # noqa: PLC0415
+    from .demo import map_errors, scored_pixels, sigma_coverage  # noqa: PLC0415
     from .formats.exr import read_spectral  # noqa: PLC0415
     from .model.maps_io import read_maps  # noqa: PLC0415
 
     keep = scored_pixels(fit.flags.cpu())
-    errors = map_errors(read_maps(session / "truth" / "maps.exr"), fit.maps, keep)
+    truth = read_maps(session / "truth" / "maps.exr")
+    errors = map_errors(truth, fit.maps, keep)
+    cover = sigma_coverage(truth, fit.maps, fit.sigma, keep, TARGETS)
     truth_r = read_spectral(session / "truth" / "reflectance.exr")[0].double()
     if k > 1:
         truth_r = F.avg_pool2d(truth_r[None], k)[0]
     used = fit.checks.bands_used.cpu()
     noise = (cube.reflectance.double() - truth_r)[used][:, keep]
     residual = fit.residual.detach().double().cpu()[used][:, keep]
-    return {**_error_columns(errors), "residual_over_noise": float(residual.pow(2).mean().sqrt() / noise.pow(2).mean().sqrt())}
+    return {**_error_columns(errors), **{f"sigma_coverage_{m}": v for m, v in cover.items()},
+            "residual_over_noise": float(residual.pow(2).mean().sqrt() / noise.pow(2).mean().sqrt())}
 
 
 def _error_columns(errors: dict) -> dict:

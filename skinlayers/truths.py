@@ -26,8 +26,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["FORWARD_SCENES", "FORWARD_WAVELENGTHS_NM", "SESSION_PX", "SESSION_SEEDS", "TRUTH_DIR", "ForwardScene",
-           "forward_scene", "forward_truth", "make_forward_truths", "make_session_truth", "session_renders"]
+__all__ = ["FORWARD_SCENES", "FORWARD_WAVELENGTHS_NM", "SESSIONS", "SESSION_PX", "SESSION_PX_64", "SESSION_SEEDS",
+           "SESSION_SEEDS_64", "TRUTH_DIR", "ForwardScene",
+           "forward_scene", "forward_truth", "make_forward_truths", "make_session_truth", "session_renders",
+           "shipped_session"]
 
 #: Where the shipped truths live (package data).
 TRUTH_DIR = Path(__file__).resolve().parent / "data" / "truths"
@@ -48,6 +50,15 @@ FORWARD_PHOTONS = 500_000
 SESSION_SEEDS = (41, 42, 43)
 SESSION_PX = 32
 SESSION_PHOTONS = 150_000
+#: Sessions at the size a user fits: 64² cubes (0.117-mm pixels). Photons per node so that the truth's
+#: Monte Carlo error per cube pixel is at most half the camera's (0.007 at 64²): the error per pixel
+#: grows with the pixels a node's photons are shared by (twice 32²'s for four times the pixels).
+SESSION_SEEDS_64 = (61, 62, 63)
+SESSION_PX_64 = 64
+SESSION_PHOTONS_64 = 250_000
+#: Every shipped session: seed -> (cube side in px, photons per wavelength node).
+SESSIONS = {**{s: (SESSION_PX, SESSION_PHOTONS) for s in SESSION_SEEDS},
+            **{s: (SESSION_PX_64, SESSION_PHOTONS_64) for s in SESSION_SEEDS_64}}
 #: The scenes, by name: what each holds (the feature; the skin around it is Table 2's III interior).
 FORWARD_SCENES = {
     "stripe": "a 1-mm stripe of dermal blood (C_hd 0.08), uniform light",
@@ -199,7 +210,10 @@ def forward_truth(name: str, path: Path | None = None) -> tuple[torch.Tensor, to
 def make_session_truth(seed: int, out: Path = TRUTH_DIR, photons: int = SESSION_PHOTONS, size_px: int = SESSION_PX) -> Path:
     """Render the demo's scene by the transport reference for a ``size_px``² session of ``seed`` and write
     ``session_<seed>.npz`` (each band's camera channels ``(L, 3, N, N)``, truth and standard error ``(L, N, N)``,
-    float32, on the truth grid) and ``session_<seed>.json`` (what made it, and how long it took)."""
+    float32, on the truth grid) and ``session_<seed>.json`` (what made it, and how long it took).
+
+    Resumable: each band is kept in ``.session_<seed>.partial.pt`` as it is rendered, and a run that finds
+    that file (made with the same photons and size) renders only the bands it lacks."""
     from .acquire.scene import scene_from_dict  # noqa: PLC0415
     from .acquire.simulated import SimulatedBench  # noqa: PLC0415
     from .acquire.simulation_settings import load_simulation_settings  # noqa: PLC0415
@@ -210,18 +224,35 @@ def make_session_truth(seed: int, out: Path = TRUTH_DIR, photons: int = SESSION_
     rig, scene = session_rig(size_px), demo_scene()
     settings = load_simulation_settings(None, truth={"physics": "transport", "photons": photons})
     bench = SimulatedBench(rig, scene_from_dict(scene), settings, seed, device="cpu")
-    start = time.perf_counter()
-    bench.prepare()
-    seconds = time.perf_counter() - start
-    kept = bench.band_renders()
-    np.savez_compressed(out / f"session_{seed}.npz", **{k: v.numpy() for k, v in kept.items()})
+    partial = out / f".session_{seed}.partial.pt"
+    key = {"photons": photons, "size_px": size_px}
+    kept = torch.load(partial, weights_only=False) if partial.exists() else {"key": key, "bands": {}, "seconds": 0.0}
+    if kept["key"] != key:
+        kept = {"key": key, "bands": {}, "seconds": 0.0}
+    for nm, render in kept["bands"].items():
+        bench._renders[nm] = render  # the bench's own records, as this function kept them
+    for band in rig.bands:
+        if band.wavelength_nm in kept["bands"]:
+            continue
+        start = time.perf_counter()
+        kept["bands"][band.wavelength_nm] = bench.render_band(band.wavelength_nm)
+        kept["seconds"] += time.perf_counter() - start
+        torch.save(kept, partial)
+        print(f"session {seed}: {band.wavelength_nm:g} nm after {kept['seconds']:.0f} s", flush=True)
+    renders = bench.band_renders()
+    np.savez_compressed(out / f"session_{seed}.npz", **{k: v.numpy() for k, v in renders.items()})
     record = {"seed": seed, "cube_px": size_px, "photons_per_node": photons, "physics": "transport",
-              "scene": scene, "wavelengths_nm": list(rig.wavelengths_nm), "seconds": round(seconds, 1),
+              "scene": scene, "wavelengths_nm": list(rig.wavelengths_nm), "seconds": round(kept["seconds"], 1),
               "threads": torch.get_num_threads(), "made": time.strftime("%Y-%m-%d"), "software": software_version(),
+              # the standard error of a cube pixel, the mean of oversample² truth pixels (errors independent)
+              "cube_std_error_median": round(float((bench.on_cube(renders["std_error"].double() ** 2).sqrt()
+                                                    / settings.truth.oversample).median()), 5)
+              if "std_error" in renders else None,
               "units": "channels and truth: reflectance factor (1) on the truth grid; std_error: the truth's Monte Carlo "
                        "standard error (1)"}
     (out / f"session_{seed}.json").write_text(json.dumps(record, indent=1) + "\n")
-    print(f"session {seed}: {seconds:.0f} s", flush=True)
+    partial.unlink(missing_ok=True)
+    print(f"session {seed}: {kept['seconds']:.0f} s", flush=True)
     return out / f"session_{seed}.npz"
 
 
@@ -234,14 +265,27 @@ def session_renders(seed: int, folder: Path = TRUTH_DIR) -> tuple[dict, dict[str
     return record, renders
 
 
+def shipped_session(seed: int, size_px: int, photons: int | None = None, folder: Path = TRUTH_DIR):
+    """The shipped transport session of ``seed`` when it was rendered for a ``size_px``² cube of the demo's
+    scene (and with ``photons`` per node, when given), as ``session_renders`` gives it; else None."""
+    if not (folder / f"session_{seed}.json").exists():
+        return None
+    record = json.loads((folder / f"session_{seed}.json").read_text())
+    from .demo import demo_scene  # noqa: PLC0415
+
+    if record["cube_px"] != size_px or record["scene"] != demo_scene() or photons not in (None, record["photons_per_node"]):
+        return None
+    return session_renders(seed, folder)
+
+
 def main() -> None:
     """Make every shipped truth that is missing (forward scenes, then the sessions)."""
     torch.manual_seed(0)
     start = time.perf_counter()
     make_forward_truths()
-    for seed in SESSION_SEEDS:
+    for seed, (size_px, photons) in SESSIONS.items():
         if not (TRUTH_DIR / f"session_{seed}.json").exists():
-            make_session_truth(seed)
+            make_session_truth(seed, photons=photons, size_px=size_px)
     print(f"truths made in {time.perf_counter() - start:.0f} s", flush=True)
 
 

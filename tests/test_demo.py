@@ -73,6 +73,28 @@ def test_melanin_and_dermal_blood_within_the_acceptance(demo):
     assert p["beta_m"]["median_error"] < 0.10, p
 
 
+def test_accuracy_says_how_often_sigma_covers_the_truth(demo):
+    """accuracy.json's ``sigma_coverage``: per map the share of scored pixels whose truth (box-averaged to the
+    fit's grid) lies within ±2σ of the fit, recomputed here from maps.exr's own channels."""
+    import numpy as np
+
+    from skinlayers.demo import scored_pixels
+    from skinlayers.formats.exr import read_exr
+
+    out, _, acc = demo
+    channels, _ = read_exr(out / "reconstruction" / "maps.exr")
+    keep = scored_pixels(torch.as_tensor(np.asarray(channels["flags"])).long()).numpy()
+    truth = read_maps(out / "session" / "truth" / "maps.exr")
+    for name in ("C_m", "beta_m", "C_he", "C_hd"):
+        f, sigma = np.asarray(channels[name], dtype=np.float64), np.asarray(channels[f"sigma_{name}"], dtype=np.float64)
+        k = getattr(truth, name).shape[-1] // f.shape[-1]
+        t = torch.nn.functional.avg_pool2d(getattr(truth, name)[None].double(), k)[0, 0].numpy()
+        expected = float(np.mean((np.abs(f - t) <= 2 * sigma)[keep]))
+        assert acc["parameters"][name]["sigma_coverage"] == pytest.approx(expected, abs=1e-3), name
+        assert 0.0 < expected <= 1.0, name
+    assert "within ±2σ" in demo[1]
+
+
 @pytest.mark.slow
 def test_a_second_fit_of_the_cube_is_identical(demo):
     """(Slow: a second fit; the default run checks the same on a synthetic cube through the CLI,
@@ -98,3 +120,22 @@ def test_a_bad_scene_is_refused_before_any_folder_is_made(tmp_path):
     result = CliRunner().invoke(app, ["demo", "--out", str(out), "--scene", str(tmp_path / "missing.yaml")])
     assert result.exit_code != 0 and "missing.yaml" in str(result.exception)
     assert not out.exists()
+
+
+def test_the_shipped_monte_carlo_is_photographed_instead_of_rendered_again():
+    """--physics transport on the demo's scene at the size and seed of a shipped Monte Carlo session takes its
+    render (minutes of photons saved); any other seed, size, scene or photon count walks its own."""
+    from skinlayers.demo import _shipped_renders
+    from skinlayers.truths import SESSION_PX_64, SESSION_SEEDS_64, session_renders
+
+    seed = SESSION_SEEDS_64[0]
+    record, renders = session_renders(seed)
+    truth = {"physics": "transport"}
+    kept = _shipped_renders(truth, seed, SESSION_PX_64, scene_given=False)
+    assert kept is not None and torch.equal(kept["truth"], renders["truth"])
+    assert truth["photons"] == record["photons_per_node"]
+    assert _shipped_renders({"physics": "transport"}, 12345, SESSION_PX_64, scene_given=False) is None
+    assert _shipped_renders({"physics": "transport"}, seed, 32, scene_given=False) is None
+    assert _shipped_renders({"physics": "transport"}, seed, SESSION_PX_64, scene_given=True) is None
+    assert _shipped_renders({"physics": "transport", "photons": 1000}, seed, SESSION_PX_64, scene_given=False) is None
+    assert _shipped_renders({}, seed, SESSION_PX_64, scene_given=False) is None

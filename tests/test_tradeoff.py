@@ -126,3 +126,4 @@ def test_bad_input_ends_in_one_line(run_cli, tmp_path):
         code, out, err = run_cli("tradeoff", *args)
         assert code == 1 and err.startswith("error:") and words in err and "Traceback" not in err, (args, err)
         assert len(err.strip().splitlines()) == 1
+
