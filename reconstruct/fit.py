@@ -45,7 +45,7 @@ from .schur import marginal_variance
 from .settings import FitSettings
 from .start import STARTS, mean_spectrum_start
 from .uniform import fit_uniform
-from .uncertainty import MODEL_FLOOR, MODEL_FLOOR_ABSOLUTE, crosstalk_ratio, model_floor, subnode_sd
+from .uncertainty import MODEL_FLOOR_ABSOLUTE, MODEL_FLOORS, crosstalk_ratio, model_floor, subnode_sd
 from .unknowns import dparams_dx, extend, near_bound, pyramid, to_params, upsample
 
 log = logging.getLogger(__name__)
@@ -731,13 +731,14 @@ def _widened(problem: LevelProblem, ev, jac, residual, x, sigma_pix, renderer_fi
     spread = subnode_sd(problem, jac, residual, sd_band, rho, dpdx)
     widen = torch.ones(N_PARAMS, dtype=torch.float64, device=jac.device)
     widen[problem.layout.fine] = 1.0 / rho[problem.layout.fine]
-    floor = model_floor(problem.at_pixels(to_params(x)))
+    profiles = problem.renderer.settings.profiles
+    floor = model_floor(problem.at_pixels(to_params(x)), profiles)
     total = torch.sqrt((sigma_pix.double() * widen) ** 2 + spread**2 + floor**2)
     return total.to(sigma_pix.dtype), {
         "crosstalk_ratio": {n: float(rho[k]) for k, n in enumerate(PARAMETER_NAMES)},
         "crosstalk_measured": renderer_fit,
         "subnode_sd_median": {PARAMETER_NAMES[k]: float(spread[:, k].median()) for k in problem.layout.coarse},
-        "model_floor": dict(MODEL_FLOOR),
+        "model_floor": dict(MODEL_FLOORS[profiles]),
         "model_floor_relative_to_value": [n for n in PARAMETER_NAMES if n not in MODEL_FLOOR_ABSOLUTE],
     }
 

@@ -43,7 +43,7 @@ from scipy import ndimage
 from ..model import N_PARAMS, PARAMETER_NAMES
 from .problem import Evaluation, LevelProblem
 
-__all__ = ["MODEL_FLOOR", "MODEL_FLOOR_ABSOLUTE", "PROBE_STEP", "crosstalk_ratio", "model_floor", "subnode_sd"]
+__all__ = ["MODEL_FLOOR", "MODEL_FLOORS", "MODEL_FLOOR_ABSOLUTE", "PROBE_STEP", "crosstalk_ratio", "model_floor", "subnode_sd"]
 
 #: The model's own error per map, relative to the value (β_m: absolute, it is a share), added to σ in
 #: quadrature: for each map the smallest floor with which 90% of the visible, unflagged pixels lie within
@@ -52,6 +52,11 @@ __all__ = ["MODEL_FLOOR", "MODEL_FLOOR_ABSOLUTE", "PROBE_STEP", "crosstalk_ratio
 #: Carotene's is five times its value: at this noise the bands do not hold it (its map is reported
 #: undetermined where it rests at a bound).
 MODEL_FLOOR = {"C_m": 0.010, "beta_m": 0.028, "C_he": 0.19, "C_bc": 5.1, "C_hd": 0.066}
+#: The floor by the fit's physics (``model.profiles``). Diffusion's is ``MODEL_FLOOR``, from its own
+#: light (the demo's sessions). Transport's comes from the light it was made to match, the shipped
+#: Monte Carlo sessions, by the same rule (``tests/bench/test_transport_session_64.py``; where and how
+#: well it holds: docs/transport.md, "Sessions at the size a user fits").
+MODEL_FLOORS = {"diffusion": MODEL_FLOOR, "transport": dict(MODEL_FLOOR)}
 MODEL_FLOOR_ABSOLUTE = ("beta_m",)
 
 #: The probe's move of every unknown (x units: ~5% of a concentration), small enough to be linear.
@@ -117,11 +122,13 @@ def subnode_sd(problem: LevelProblem, jac: torch.Tensor, residual: torch.Tensor,
     return out
 
 
-def model_floor(p: torch.Tensor) -> torch.Tensor:
-    """``MODEL_FLOOR`` at parameters ``p`` ``(N, N_PARAMS)``: ``(N, N_PARAMS)`` in the parameters' units."""
+def model_floor(p: torch.Tensor, profiles: str = "diffusion") -> torch.Tensor:
+    """The model floor of the physics ``profiles`` (``MODEL_FLOORS``) at parameters ``p`` ``(N, N_PARAMS)``:
+    ``(N, N_PARAMS)`` in the parameters' units."""
+    floors = MODEL_FLOORS[profiles]
     out = torch.empty_like(p, dtype=torch.float64)
     for k, name in enumerate(PARAMETER_NAMES):
-        f = MODEL_FLOOR[name]
+        f = floors[name]
         out[:, k] = f if name in MODEL_FLOOR_ABSOLUTE else f * p[:, k].double().abs()
     return out
 

@@ -230,7 +230,7 @@ def demo(
     session, calibrated, reconstruction = folder / "session", folder / "calibrated", folder / "reconstruction"
     rig = session_rig(size)
     (folder / "rig.yaml").write_text(yaml.safe_dump(rig.model_dump(mode="json"), sort_keys=False))
-    scene_given = scene is not None
+    kept = _shipped_renders(truth, seed, size, scene_given=scene is not None)
     if scene is None:
         scene = folder / "scene.yaml"
         scene.write_text(yaml.safe_dump(demo_scene(), sort_keys=False))
@@ -241,7 +241,6 @@ def demo(
         return time.perf_counter()
 
     t = step(f"1/4 capture (simulated rig, seed {seed}) → {session}")
-    kept = _shipped_renders(truth, seed, size, scene_given)
     simulate_session(session, rig, scene, seed, device, truth, kept_renders=kept)
     times["capture_s"] = time.perf_counter() - t
     t = step(f"2/4 calibrate → {calibrated}")

@@ -10,8 +10,8 @@ measured and resumed on a rerun), then the Pareto fronts, a summary (``tradeoff.
 - **inverse**: the fit's choices (``INVERSE_CONFIGS``: method, start, ``--model``, physics, levels,
   tolerance, map grids, precision, cube binning) on simulated sessions through the rig and the
   calibration, some rendered by the model at higher fidelity than the fit's, some by the transport
-  reference; each map's median error against the truth, the share of scored pixels whose truth lies
-  within ±2σ of the fit (``sigma_coverage_<map>``) and the residual against the cube's noise;
+  reference; each map's median error against the truth, how often its σ covers the truth
+  (``sigma_coverage_<map>``) and the residual against the cube's noise;
 - **scale**: the default and the paper's fit against the cube's size, with the fitted exponent
   (time ∝ pixels^k).
 
