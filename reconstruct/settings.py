@@ -10,14 +10,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, model_validator
 
 from ..formats.errors import SettingsError
 from ..formats.settings import Strict, load_settings
 from ..model import ModelSettings
 from .optimizers import METHODS, PER_PIXEL_METHODS
 
-__all__ = ["DEFAULT_MAP_CELL_MM", "FitSettings", "FitSettingsError", "load_fit_settings"]
+__all__ = ["DEFAULT_MAP_CELL_MM", "MAP_CELL_MM_BY_PROFILES", "TRANSPORT_MAP_CELL_MM", "FitSettings", "FitSettingsError", "load_fit_settings"]
 
 
 class FitSettingsError(SettingsError):
@@ -28,6 +28,13 @@ class FitSettingsError(SettingsError):
 #: melanin and epidermal blood per pixel; β_m on 1.5-mm nodes; carotene one value per patch; dermal blood
 #: on 0.375-mm nodes (20 across the 7.5-mm window).
 DEFAULT_MAP_CELL_MM = {"C_m": 0.0, "beta_m": 1.5, "C_he": 0.0, "C_bc": 100.0, "C_hd": 0.375}
+#: With transport profiles: a dermal-blood change spreads its light over its neighbours (1.3–2 mm by the
+#: Monte Carlo, against 1 mm by diffusion), so the data hold C_hd on coarser nodes, and epidermal blood
+#: (whose spectrum is dermal blood's) on nodes too; the spacings chosen on the Monte Carlo's own sessions
+#: (docs/transport.md, "Sessions at the size a user fits").
+TRANSPORT_MAP_CELL_MM = {**DEFAULT_MAP_CELL_MM, "C_he": 0.25, "C_hd": 0.5}
+#: gn-hom's node spacings by the model's ``profiles``.
+MAP_CELL_MM_BY_PROFILES = {"diffusion": DEFAULT_MAP_CELL_MM, "transport": TRANSPORT_MAP_CELL_MM}
 _PER_PIXEL = dict.fromkeys(DEFAULT_MAP_CELL_MM, 0.0)
 
 
@@ -81,7 +88,8 @@ class FitSettings(Strict):
         description=(
             "Node spacing (mm) of each map's own grid, bilinearly interpolated onto the pixels; 0: per pixel; a "
             "spacing as large as the window: one value for the patch. Maps not named keep the default. "
-            "None: the measured default for gn-hom (DEFAULT_MAP_CELL_MM), per pixel for gn, adam and paper-fd."
+            "None: the measured default for gn-hom and the model's profiles (MAP_CELL_MM_BY_PROFILES), per pixel for "
+            "gn, adam and paper-fd."
         ),
     )
     map_grids: Literal["fixed", "auto"] = Field(
@@ -184,15 +192,6 @@ class FitSettings(Strict):
     dtype: Literal["float32", "float64"] = Field("float32", description="Precision of the renders.")
     model: ModelSettings = Field(default_factory=ModelSettings, description="The skin model (keys of configs/model.yaml).")
 
-    @field_validator("map_cell_mm", mode="before")
-    @classmethod
-    def _cells(cls, value, info):
-        """A file names only the maps it changes; the others keep the method's default."""
-        if not isinstance(value, dict):
-            return value
-        per_pixel = info.data.get("method") in PER_PIXEL_METHODS
-        return {**(_PER_PIXEL if per_pixel else DEFAULT_MAP_CELL_MM), **value}
-
     @model_validator(mode="after")
     def _method(self) -> "FitSettings":
         if self.method not in METHODS:
@@ -203,6 +202,9 @@ class FitSettings(Strict):
                 raise ValueError(f"map_cell_mm: unknown map(s) {', '.join(sorted(unknown))}; the maps are {', '.join(DEFAULT_MAP_CELL_MM)}")
             if any(v < 0 for v in self.map_cell_mm.values()):
                 raise ValueError(f"map_cell_mm: a node spacing must be ≥ 0 mm (0: per pixel), got {self.map_cell_mm}")
+            # a file names only the maps it changes; the others keep the method's and the physics' default
+            # (the settings are frozen once made: this is their making)
+            object.__setattr__(self, "map_cell_mm", {**self._default_cells(), **self.map_cell_mm})
         if self.map_grids == "auto" and self.method in PER_PIXEL_METHODS:
             raise ValueError(f"map_grids: auto chooses node grids, which method {self.method} does not fit (use gn-hom)")
         if self.coarse_maps and self.method in PER_PIXEL_METHODS:
@@ -217,7 +219,10 @@ class FitSettings(Strict):
         """The node spacing of every map as the fit uses it (``map_cell_mm`` resolved)."""
         if self.map_cell_mm is not None:
             return dict(self.map_cell_mm)
-        return dict(_PER_PIXEL if self.method in PER_PIXEL_METHODS else DEFAULT_MAP_CELL_MM)
+        return self._default_cells()
+
+    def _default_cells(self) -> dict[str, float]:
+        return dict(_PER_PIXEL if self.method in PER_PIXEL_METHODS else MAP_CELL_MM_BY_PROFILES[self.model.profiles])
 
     @property
     def coarse_maps(self) -> list[str]:

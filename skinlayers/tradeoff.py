@@ -89,6 +89,7 @@ INVERSE_CONFIGS: dict[str, dict] = {
     "paper model, gn-hom": {"forward": "heterogeneous", "map_cell_mm": _ALL_PER_PIXEL, "free_scale": True},
     "diffusion": {"model": {"profiles": "diffusion"}},
     "transport": {"model": {"profiles": "transport"}},
+    "transport, diffusion's grids": {"model": {"profiles": "transport"}, "map_cell_mm": {"C_he": 0.0, "C_hd": 0.375}},
     # under transport a dermal-blood change spreads its light over 1.3–2 mm (docs/transport.md): C_hd on
     # nodes the light can tell apart, and the coupling that draws that spread
     "transport, C_hd 0.75 mm": {"model": {"profiles": "transport"}, "map_cell_mm": {"C_hd": 0.75}},

@@ -127,3 +127,30 @@ def test_bad_input_ends_in_one_line(run_cli, tmp_path):
         assert code == 1 and err.startswith("error:") and words in err and "Traceback" not in err, (args, err)
         assert len(err.strip().splitlines()) == 1
 
+
+def test_the_64px_monte_carlo_sessions_are_finer_than_the_camera(tmp_path):
+    """The shipped Monte Carlo sessions at the size a user fits (64²): the demo's scene, and the truth's own
+    standard error per cube pixel at most half the camera's noise against that truth (photographed here
+    through the rig and calibrated like any session)."""
+    import numpy as np
+
+    from skinlayers.demo import demo_scene
+    from skinlayers.formats.cube import read_cube
+    from skinlayers.formats.exr import read_spectral
+    from skinlayers.tradeoff import make_session
+    from skinlayers.truths import SESSION_PX_64, SESSION_SEEDS_64, shipped_session
+
+    assert len(SESSION_SEEDS_64) >= 3
+    for seed in SESSION_SEEDS_64:
+        record, renders = session_renders(seed)
+        assert record["cube_px"] == SESSION_PX_64 and record["scene"] == demo_scene(), seed
+        assert renders["truth"].shape[-1] >= 2 * SESSION_PX_64 and "std_error" in renders, seed
+        assert shipped_session(seed, SESSION_PX_64) is not None and shipped_session(seed, 32) is None
+    seed = SESSION_SEEDS_64[0]
+    make_session(SessionSpec("transport", seed, SESSION_PX_64), tmp_path / "s")
+    cube = read_cube(tmp_path / "s" / "calibrated" / "cube.exr")
+    truth = read_spectral(tmp_path / "s" / "session" / "truth" / "reflectance.exr")[0]
+    mask = cube.mask.numpy()
+    camera = float(np.sqrt(np.mean((cube.reflectance.double() - truth.double()).numpy()[:, mask] ** 2)))
+    mc = session_renders(seed)[0]["cube_std_error_median"]
+    assert 0.0 < mc <= 0.5 * camera, (mc, camera)

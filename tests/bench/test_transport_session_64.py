@@ -19,20 +19,24 @@ import pytest
 
 from bench_io import out_dir
 
-from skinlayers.tradeoff import INVERSE_CONFIGS, SessionSpec, TradeoffPlan, _all_configs, run_tradeoff
+from skinlayers.reconstruct.settings import DEFAULT_MAP_CELL_MM
+from skinlayers.tradeoff import SessionSpec, TradeoffPlan, _all_configs, run_tradeoff
 from skinlayers.truths import SESSION_PX_64, SESSION_SEEDS_64
 
 pytestmark = pytest.mark.bench
 
-#: The candidates: the paper's physics (the default today), transport with the grids the Cramér–Rao bound
-#: and the 32² sessions point at, epidermal blood on nodes, and the segment coupling.
+#: The candidates: the paper's physics (the default today); transport on diffusion's node spacings, with
+#: dermal blood on coarser nodes, and with the grids it now has by default (epidermal blood on nodes too);
+#: the segment coupling. Every spacing is written out: the defaults move with what this bench finds.
+_D = dict(DEFAULT_MAP_CELL_MM)
+_T = {"profiles": "transport"}
 CONFIGS = {
-    "diffusion": INVERSE_CONFIGS["diffusion"],
-    "transport": INVERSE_CONFIGS["transport"],
-    "transport, C_hd 0.5 mm": {"model": {"profiles": "transport"}, "map_cell_mm": {"C_hd": 0.5}},
-    "transport, C_hd 0.75 mm": INVERSE_CONFIGS["transport, C_hd 0.75 mm"],
-    "transport, C_he 0.25 mm, C_hd 0.5 mm": {"model": {"profiles": "transport"}, "map_cell_mm": {"C_he": 0.25, "C_hd": 0.5}},
-    "transport, segment": INVERSE_CONFIGS["transport, segment"],
+    "diffusion": {"model": {"profiles": "diffusion"}},
+    "transport, diffusion's grids": {"model": _T, "map_cell_mm": _D},
+    "transport, C_hd 0.5 mm": {"model": _T, "map_cell_mm": {**_D, "C_hd": 0.5}},
+    "transport, C_hd 0.75 mm": {"model": _T, "map_cell_mm": {**_D, "C_hd": 0.75}},
+    "transport, C_he 0.25 mm, C_hd 0.5 mm": {"model": _T, "map_cell_mm": {**_D, "C_he": 0.25, "C_hd": 0.5}},
+    "transport, segment": {"model": {**_T, "render": {"coupling": "segment"}}, "map_cell_mm": _D},
 }
 
 
