@@ -20,8 +20,8 @@ import pytest
 from bench_io import out_dir
 
 from skinlayers.reconstruct.settings import DEFAULT_MAP_CELL_MM
-from skinlayers.tradeoff import SessionSpec, TradeoffPlan, _all_configs, run_tradeoff
-from skinlayers.truths import SESSION_PX_64, SESSION_SEEDS_64
+from skinlayers.tradeoff import SessionSpec, TradeoffPlan, _all_configs, make_session, run_tradeoff
+from skinlayers.truths import SESSION_PX, SESSION_PX_64, SESSION_SEEDS, SESSION_SEEDS_64
 
 pytestmark = pytest.mark.bench
 
@@ -60,7 +60,8 @@ def test_the_model_floor_of_each_physics_on_the_monte_carlos_light():
     """For each physics, each map's model floor (``uncertainty.MODEL_FLOORS``): the smallest share of the
     value (β_m: absolute) which, added in quadrature to σ's data terms, puts 90% of the scored pixels' truth
     within ±2σ, on each Monte Carlo session of the test above (its calibrated cubes, fitted again with the
-    physics alone changed). ``FLOOR_SEEDS`` measure it, the other seeds check the shipped value's coverage.
+    physics alone changed). ``FLOOR_SEEDS`` measure it, the other seeds and the 32² sessions (seeds 41–43,
+    photographed here) check the shipped value's coverage.
     Writes ``transport_floor.csv``."""
     import torch
 
@@ -74,9 +75,16 @@ def test_the_model_floor_of_each_physics_on_the_monte_carlos_light():
     from bench_io import write_csv
 
     rows = []
+    specs = [SessionSpec("transport", s, SESSION_PX_64) for s in SESSION_SEEDS_64]
+    specs += [SessionSpec("transport", s, SESSION_PX) for s in SESSION_SEEDS]  # 32², other seeds: checks only
+    for spec in specs[len(SESSION_SEEDS_64):]:
+        folder = out_dir() / "transport_session_64" / "sessions" / spec.name
+        if not (folder / "calibrated" / "cube.exr").exists():
+            make_session(spec, folder)
     for physics in ("transport", "diffusion"):
-        for seed in SESSION_SEEDS_64:
-            folder = out_dir() / "transport_session_64" / "sessions" / SessionSpec("transport", seed, SESSION_PX_64).name
+        for spec in specs:
+            seed = spec.seed
+            folder = out_dir() / "transport_session_64" / "sessions" / spec.name
             if not (folder / "calibrated" / "cube.exr").exists():
                 pytest.skip(f"{folder}: run test_the_64px_monte_carlo_sessions_fitted_with_each_candidate first")
             fit = fit_cube(read_cube(folder / "calibrated" / "cube.exr"), load_fit_settings(None, model={"profiles": physics}), device="cpu")
@@ -91,7 +99,7 @@ def test_the_model_floor_of_each_physics_on_the_monte_carlos_light():
                 data = torch.sqrt((sigma**2 - (shipped * scale) ** 2).clamp_min(0.0))
                 err = (f - t).abs()
                 needed = torch.sqrt(((err / 2) ** 2 - data**2).clamp_min(0.0)) / scale
-                rows.append({"physics": physics, "seed": seed, "role": "measures" if seed in FLOOR_SEEDS else "checks", "map": name,
+                rows.append({"physics": physics, "seed": seed, "size_px": spec.size_px, "role": "measures" if seed in FLOOR_SEEDS else "checks", "map": name,
                              "pixels": int(keep.sum()),
                              "median_error": round(float((err if name in MODEL_FLOOR_ABSOLUTE else err / t.abs()).median()), 4),
                              "cover_sigma": round(float((err <= 2 * sigma).double().mean()), 3),
