@@ -28,10 +28,10 @@ class FitSettingsError(SettingsError):
 #: melanin and epidermal blood per pixel; β_m on 1.5-mm nodes; carotene one value per patch; dermal blood
 #: on 0.375-mm nodes (20 across the 7.5-mm window).
 DEFAULT_MAP_CELL_MM = {"C_m": 0.0, "beta_m": 1.5, "C_he": 0.0, "C_bc": 100.0, "C_hd": 0.375}
-#: With transport profiles: a dermal-blood change spreads its light over its neighbours (1.3–2 mm by the
-#: Monte Carlo, against 1 mm by diffusion), so the data hold C_hd on coarser nodes, and epidermal blood
-#: (whose spectrum is dermal blood's) on nodes too; the spacings chosen on the Monte Carlo's own sessions
-#: (docs/transport.md, "Sessions at the size a user fits").
+#: With transport profiles: a dermal-blood change spreads its light further over its neighbours than
+#: diffusion draws it, so the data hold C_hd on coarser nodes, and epidermal blood (whose spectrum is
+#: dermal blood's) on nodes too; the spacings chosen on the Monte Carlo's own sessions (docs/transport.md,
+#: "Sessions at the size a user fits").
 TRANSPORT_MAP_CELL_MM = {**DEFAULT_MAP_CELL_MM, "C_he": 0.25, "C_hd": 0.5}
 #: gn-hom's node spacings by the model's ``profiles``.
 MAP_CELL_MM_BY_PROFILES = {"diffusion": DEFAULT_MAP_CELL_MM, "transport": TRANSPORT_MAP_CELL_MM}
