@@ -59,7 +59,7 @@ MODEL_FLOOR = {"C_m": 0.010, "beta_m": 0.028, "C_he": 0.19, "C_bc": 5.1, "C_hd":
 #: Carotene keeps diffusion's five times its value: it rests at a bound on most of those sessions, where a
 #: floor relative to the value says nothing.
 MODEL_FLOORS = {"diffusion": MODEL_FLOOR,
-                "transport": {"C_m": 0.12, "beta_m": 0.17, "C_he": 0.11, "C_bc": 5.1, "C_hd": 0.24}}
+                "transport": {"C_m": 0.13, "beta_m": 0.18, "C_he": 0.11, "C_bc": 5.1, "C_hd": 0.25}}
 MODEL_FLOOR_ABSOLUTE = ("beta_m",)
 
 #: The probe's move of every unknown (x units: ~5% of a concentration), small enough to be linear.

@@ -139,7 +139,8 @@ def map_errors(truth, fit, keep) -> dict:
 def sigma_coverage(truth, fit, sigma, pixels, names) -> dict[str, float]:
     """Per map of ``names``, the share of ``pixels`` ``(H, W)`` bool of the fit's grid where the truth
     (``SkinMaps``, box-averaged onto that grid) lies within 2σ of the fit; ``sigma`` ``(N_PARAMS, H, W)``
-    in ``PARAMETER_NAMES`` order."""
+    in ``PARAMETER_NAMES`` order. A pixel without a finite σ counts as not covered (a σ the fit could not
+    give covers nothing)."""
     from .model import PARAMETER_NAMES  # noqa: PLC0415
 
     pixels = pixels.to("cpu")
@@ -260,7 +261,8 @@ def demo(
 
 def _shipped_renders(truth: dict, seed: int, size: int, scene_given: bool) -> dict | None:
     """With ``--physics transport`` on the demo's scene: the shipped Monte Carlo of this seed and size
-    (``skinlayers.truths``), photographed anew instead of walking the photons again; else None."""
+    (``skinlayers.truths``), photographed anew instead of walking the photons again; else None. Sets
+    ``truth["photons"]`` to the shipped render's, which the session's truth record then states."""
     if truth.get("physics") != "transport" or scene_given:
         return None
     from .truths import shipped_session  # noqa: PLC0415

@@ -74,7 +74,7 @@ PAPER_STEPS = 300
 #: step costs 1 + N_PARAMS renders, so 300 steps are minutes a session: docs/tradeoff.md, "What is
 #: swept, and against which truth").
 QUICK_PAPER_STEPS = 200
-#: On the 32² diffusion session: the Monte Carlo's is 64², where 200 steps take four times as long.
+#: On the 32² diffusion session: the Monte Carlo's is 64², where each step costs four times the pixels.
 QUICK_PAPER_TRUTHS = ("diffusion",)
 #: The scale sweep's paper: its time per step is what grows with the cube (the steps do not), so it runs
 #: SCALE_PAPER_STEPS steps (no convergence test) and its time is per that many steps.
@@ -87,11 +87,12 @@ INVERSE_CONFIGS: dict[str, dict] = {
     "paper": {"method": "paper-fd", "start": "paper", "forward": "heterogeneous", "map_cell_mm": _ALL_PER_PIXEL,
               "free_scale": True, "robust_passes": 0, "max_iterations": PAPER_STEPS // FIRST_ORDER_CAP},
     "paper model, gn-hom": {"forward": "heterogeneous", "map_cell_mm": _ALL_PER_PIXEL, "free_scale": True},
+    # each physics by name, whatever the default is (today "diffusion" is the default's)
     "diffusion": {"model": {"profiles": "diffusion"}},
     "transport": {"model": {"profiles": "transport"}},
     "transport, diffusion's grids": {"model": {"profiles": "transport"}, "map_cell_mm": {"C_he": 0.0, "C_hd": 0.375}},
-    # under transport a dermal-blood change spreads its light over 1.3–2 mm (docs/transport.md): C_hd on
-    # nodes the light can tell apart, and the coupling that draws that spread
+    # under transport a dermal-blood change spreads its light wider than diffusion draws it
+    # (docs/transport.md): C_hd on nodes the light can tell apart, and the coupling that draws that spread
     "transport, C_hd 0.75 mm": {"model": {"profiles": "transport"}, "map_cell_mm": {"C_hd": 0.75}},
     "transport, segment": {"model": {"profiles": "transport", "render": {"coupling": "segment"}}},
     "transport, segment, C_hd 0.75 mm": {"model": {"profiles": "transport", "render": {"coupling": "segment"}},
@@ -118,7 +119,7 @@ SCALE_CONFIGS: dict[str, dict] = {
     f"paper, {SCALE_PAPER_STEPS} steps": {**{k: v for k, v in INVERSE_CONFIGS["paper"].items() if k != "max_iterations"},
                                           "max_iterations": SCALE_PAPER_STEPS // FIRST_ORDER_CAP, "ftol": 1e-12},
 }
-QUICK_INVERSE = ("default", "fixed", "homogeneous", "paper", "diffusion", "transport", "transport, C_hd 0.75 mm", "transport, segment",
+QUICK_INVERSE = ("default", "fixed", "homogeneous", "paper", "transport", "transport, C_hd 0.75 mm", "transport, segment",
                  "ftol 1e-2", "binned 2x2")
 QUICK_SCALE_PX = (32, 64)
 #: Marked on the charts.
@@ -126,7 +127,8 @@ MARKED = {"default": "default (--model auto)", "fixed": "--model fixed", "paper"
 #: With --cube (no truth): the configuration whose maps the others are measured against.
 FAITHFUL = "faithful"
 FAITHFUL_CONFIG = {"forward": "heterogeneous", "dtype": "float64", "ftol": 1e-4, "model": {"profiles": "transport"}}
-#: The diffusion sessions' seeds are these plus --seed (none of them tuned any default).
+#: The diffusion sessions' seeds are these plus --seed (none of them tuned a diffusion default; with --seed 0
+#: they share their skin with the Monte Carlo sessions, whose seeds chose transport's grids and floor).
 DIFFUSION_SEED_BASE = 61
 #: Knob columns: what each row's configuration set (empty: the default).
 KNOBS = ("physics", "coupling", "gaussians", "series_tolerance", "blur", "border_mm", "dtype", "method", "start", "model",

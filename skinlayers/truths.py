@@ -19,6 +19,8 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
+import pickle
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,9 +52,10 @@ FORWARD_PHOTONS = 500_000
 SESSION_SEEDS = (41, 42, 43)
 SESSION_PX = 32
 SESSION_PHOTONS = 150_000
-#: Sessions at the size a user fits: 64² cubes (0.117-mm pixels). Photons per node so that the truth's
-#: Monte Carlo error per cube pixel is at most half the camera's (0.007 at 64²): the error per pixel
-#: grows with the pixels a node's photons are shared by (twice 32²'s for four times the pixels).
+#: Sessions at the size a user fits: 64² cubes. Photons per node so that the truth's Monte Carlo error per
+#: cube pixel is at most half the camera's there (a test checks it): the error per pixel grows with the
+#: pixels a node's photons are shared by. These seeds chose transport's node spacings and set its model
+#: floor (63 only checks the floor): scores on them are not held out (docs/transport.md).
 SESSION_SEEDS_64 = (61, 62, 63)
 SESSION_PX_64 = 64
 SESSION_PHOTONS_64 = 250_000
@@ -225,10 +228,9 @@ def make_session_truth(seed: int, out: Path = TRUTH_DIR, photons: int = SESSION_
     settings = load_simulation_settings(None, truth={"physics": "transport", "photons": photons})
     bench = SimulatedBench(rig, scene_from_dict(scene), settings, seed, device="cpu")
     partial = out / f".session_{seed}.partial.pt"
-    key = {"photons": photons, "size_px": size_px}
-    kept = torch.load(partial, weights_only=False) if partial.exists() else {"key": key, "bands": {}, "seconds": 0.0}
-    if kept["key"] != key:
-        kept = {"key": key, "bands": {}, "seconds": 0.0}
+    key = {"photons": photons, "size_px": size_px, "scene": scene, "wavelengths_nm": list(rig.wavelengths_nm),
+           "software": software_version()}
+    kept = _partial_bands(partial, key)
     for nm, render in kept["bands"].items():
         bench._renders[nm] = render  # the bench's own records, as this function kept them
     for band in rig.bands:
@@ -237,7 +239,8 @@ def make_session_truth(seed: int, out: Path = TRUTH_DIR, photons: int = SESSION_
         start = time.perf_counter()
         kept["bands"][band.wavelength_nm] = bench.render_band(band.wavelength_nm)
         kept["seconds"] += time.perf_counter() - start
-        torch.save(kept, partial)
+        torch.save(kept, partial.with_suffix(".tmp"))
+        os.replace(partial.with_suffix(".tmp"), partial)  # a kill mid-save leaves the previous bands whole
         print(f"session {seed}: {band.wavelength_nm:g} nm after {kept['seconds']:.0f} s", flush=True)
     renders = bench.band_renders()
     np.savez_compressed(out / f"session_{seed}.npz", **{k: v.numpy() for k, v in renders.items()})
@@ -254,6 +257,19 @@ def make_session_truth(seed: int, out: Path = TRUTH_DIR, photons: int = SESSION_
     partial.unlink(missing_ok=True)
     print(f"session {seed}: {kept['seconds']:.0f} s", flush=True)
     return out / f"session_{seed}.npz"
+
+
+def _partial_bands(partial: Path, key: dict) -> dict:
+    """The bands an interrupted run of ``make_session_truth`` kept under ``partial``, when made with the same
+    ``key`` (photons, size, scene, wavelengths, software); else an empty record."""
+    empty = {"key": key, "bands": {}, "seconds": 0.0}
+    if not partial.exists():
+        return empty
+    try:
+        kept = torch.load(partial, weights_only=False)
+    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError):
+        return empty  # unreadable: the bands are rendered again
+    return kept if isinstance(kept, dict) and kept.get("key") == key else empty
 
 
 def session_renders(seed: int, folder: Path = TRUTH_DIR) -> tuple[dict, dict[str, torch.Tensor]]:

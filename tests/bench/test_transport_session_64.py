@@ -2,7 +2,8 @@
 the default (run on demand: ``pytest -m bench tests/bench/test_transport_session_64.py -s``).
 
 The sessions are ``skinlayers.truths.SESSION_SEEDS_64`` (the demo's scene rendered once by the transport
-reference, 250,000 photons per wavelength node; seeds no default was tuned on), photographed through the
+reference, 250,000 photons per wavelength node; no diffusion default was tuned on them, and they chose
+transport's grids: scores on them are not held out), photographed through the
 simulated rig and calibrated as ``skinlayers tradeoff`` does; each configuration below is a fit setting
 over the defaults. The table is the tradeoff's (``tradeoff.csv`` in ``bench_results/transport_session_64/``,
 resumed on a rerun): per map the median error and the share of scored pixels whose truth lies within
@@ -106,4 +107,7 @@ def test_the_model_floor_of_each_physics_on_the_monte_carlos_light():
                              "cover_data_terms": round(float((err <= 2 * data).double().mean()), 3),
                              "floor_for_90": round(float(torch.quantile(needed, 0.9)), 4), "model_floor": shipped})
     write_csv("transport_floor.csv", rows, "model floors on the 64² Monte Carlo sessions")
-    assert all(0.0 <= r["cover_sigma"] <= 1.0 for r in rows)
+    # the shipped transport floor is what its own rule gives on the seeds that measured it (carotene aside:
+    # it rests at a bound there), and covers 90% of their pixels
+    measured = [r for r in rows if r["physics"] == "transport" and r["role"] == "measures" and r["map"] != "C_bc"]
+    assert all(r["floor_for_90"] <= r["model_floor"] and r["cover_sigma"] >= 0.9 for r in measured), measured
