@@ -288,6 +288,11 @@ class SimulatedBench:
             out["std_error"] = torch.stack([r.truth_std_error for r in renders]).cpu()
         return out
 
+    def adopt_band(self, band_nm: float, render: BandRender) -> None:
+        """Take one band's skin as ``render_band`` made it earlier (with this bench's rig, scene, seed and truth
+        settings), e.g. kept by an interrupted run, instead of rendering it again."""
+        self._renders[band_nm] = render
+
     def adopt_renders(self, kept: dict[str, torch.Tensor]) -> None:
         """Photograph skin rendered earlier (``band_renders`` of a bench with the same rig, scene, seed and
         truth settings; e.g. a shipped Monte Carlo) instead of rendering it again."""

@@ -43,7 +43,8 @@ from scipy import ndimage
 from ..model import N_PARAMS, PARAMETER_NAMES
 from .problem import Evaluation, LevelProblem
 
-__all__ = ["MODEL_FLOOR", "MODEL_FLOORS", "MODEL_FLOOR_ABSOLUTE", "PROBE_STEP", "crosstalk_ratio", "model_floor", "subnode_sd"]
+__all__ = ["FLOOR_COVERAGE", "MODEL_FLOOR", "MODEL_FLOORS", "MODEL_FLOOR_ABSOLUTE", "PROBE_STEP", "crosstalk_ratio",
+           "floor_for_coverage", "model_floor", "subnode_sd"]
 
 #: The model's own error per map, relative to the value (β_m: absolute, it is a share), added to σ in
 #: quadrature: for each map the smallest floor with which 90% of the visible, unflagged pixels lie within
@@ -61,6 +62,8 @@ MODEL_FLOOR = {"C_m": 0.010, "beta_m": 0.028, "C_he": 0.19, "C_bc": 5.1, "C_hd":
 MODEL_FLOORS = {"diffusion": MODEL_FLOOR,
                 "transport": {"C_m": 0.13, "beta_m": 0.18, "C_he": 0.11, "C_bc": 5.1, "C_hd": 0.25}}
 MODEL_FLOOR_ABSOLUTE = ("beta_m",)
+#: The share of the scored pixels a floor is set to cover within ±2σ (``floor_for_coverage``).
+FLOOR_COVERAGE = 0.9
 
 #: The probe's move of every unknown (x units: ~5% of a concentration), small enough to be linear.
 PROBE_STEP = 0.05
@@ -123,6 +126,17 @@ def subnode_sd(problem: LevelProblem, jac: torch.Tensor, residual: torch.Tensor,
         local = np.where(count > 0, summed / np.maximum(count, 1e-12), 0.0).reshape(-1)[pixels]
         out[:, k] = torch.from_numpy(np.sqrt(np.clip(local, 0.0, None))).to(out) * dpdx[:, k].double()
     return out
+
+
+def floor_for_coverage(error: torch.Tensor, sigma: torch.Tensor, floor: float, scale: torch.Tensor,
+                       share: float = FLOOR_COVERAGE) -> tuple[torch.Tensor, float]:
+    """The rule that sets a map's model floor, on one fit: ``error`` = |fit − truth| and ``sigma`` (σ as written,
+    with ``floor`` × ``scale`` in quadrature) per pixel ``(N,)``; ``scale`` the value a floor is relative to
+    (the fit's |value|, or 1 for an absolute floor). Returns σ's data terms alone ``(N,)`` (the floor taken
+    out) and the smallest floor, in units of ``scale``, that puts ``share`` of the pixels within ±2σ."""
+    data = torch.sqrt((sigma**2 - (floor * scale) ** 2).clamp_min(0.0))
+    needed = torch.sqrt(((error / 2) ** 2 - data**2).clamp_min(0.0)) / scale
+    return data, float(torch.quantile(needed, share))
 
 
 def model_floor(p: torch.Tensor, profiles: str = "diffusion") -> torch.Tensor:

@@ -81,21 +81,11 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
     summary = json.loads((reconstruction / "fit.json").read_text())
     out: dict = {"pixels": int(keep.sum()), "high_residual_pixels": int(((flags >> FLAG_BITS["high_residual"]) & 1).sum()),
                  "parameters": map_errors(truth, fit, keep)}
-    sigmas = {name: channels.get(f"sigma_{name}") for name in out["parameters"]}
-    covered = [n for n, v in sigmas.items() if v is not None]
-    coverage = {}
-    if covered:
-        from .model import PARAMETER_NAMES  # noqa: PLC0415
-
-        stack = torch.full((len(PARAMETER_NAMES), *keep.shape), float("nan"), dtype=torch.float64)
-        for name in covered:
-            stack[PARAMETER_NAMES.index(name)] = torch.as_tensor(np.asarray(sigmas[name]), dtype=torch.float64)
-        coverage = sigma_coverage(truth, fit, stack, keep, covered)
     for name, entry in out["parameters"].items():
-        sigma = sigmas[name]
+        sigma = channels.get(f"sigma_{name}")
         entry["sigma_median"] = float(np.nanmedian(np.asarray(sigma)[keep.numpy()])) if sigma is not None else None
         # the share of scored pixels whose truth lies within ±2σ of the fit (0.95 for an honest normal σ)
-        entry["sigma_coverage"] = coverage.get(name)
+        entry["sigma_coverage"] = None if sigma is None else _covered(truth, fit, name, torch.as_tensor(np.asarray(sigma)), keep)
         entry["determined"] = summary["parameters"][name].get("determined", True)
     cube_channels, _ = read_exr(cube)
     truth_r, _ = read_exr(session / "truth" / "reflectance.exr")
@@ -143,13 +133,14 @@ def sigma_coverage(truth, fit, sigma, pixels, names) -> dict[str, float]:
     give covers nothing)."""
     from .model import PARAMETER_NAMES  # noqa: PLC0415
 
-    pixels = pixels.to("cpu")
-    out = {}
-    for name in names:
-        t, f = _on_fit_grid(truth, fit, name)
-        within = (f - t).abs() <= 2 * sigma[PARAMETER_NAMES.index(name)].double().cpu()
-        out[name] = float(within[pixels].double().mean())
-    return out
+    return {name: _covered(truth, fit, name, sigma[PARAMETER_NAMES.index(name)], pixels) for name in names}
+
+
+def _covered(truth, fit, name: str, sigma, pixels) -> float:
+    """The share of ``pixels`` ``(H, W)`` where map ``name``'s truth lies within 2σ of the fit (``sigma`` ``(H, W)``)."""
+    t, f = _on_fit_grid(truth, fit, name)
+    within = (f - t).abs() <= 2 * sigma.double().cpu()
+    return float(within[pixels.to("cpu")].double().mean())
 
 
 def _on_fit_grid(truth, fit, name: str):

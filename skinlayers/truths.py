@@ -216,7 +216,7 @@ def make_session_truth(seed: int, out: Path = TRUTH_DIR, photons: int = SESSION_
     float32, on the truth grid) and ``session_<seed>.json`` (what made it, and how long it took).
 
     Resumable: each band is kept in ``.session_<seed>.partial.pt`` as it is rendered, and a run that finds
-    that file (made with the same photons and size) renders only the bands it lacks."""
+    that file (made with the same photons, size, scene, bands and software) renders only the bands it lacks."""
     from .acquire.scene import scene_from_dict  # noqa: PLC0415
     from .acquire.simulated import SimulatedBench  # noqa: PLC0415
     from .acquire.simulation_settings import load_simulation_settings  # noqa: PLC0415
@@ -232,7 +232,7 @@ def make_session_truth(seed: int, out: Path = TRUTH_DIR, photons: int = SESSION_
            "software": software_version()}
     kept = _partial_bands(partial, key)
     for nm, render in kept["bands"].items():
-        bench._renders[nm] = render  # the bench's own records, as this function kept them
+        bench.adopt_band(nm, render)
     for band in rig.bands:
         if band.wavelength_nm in kept["bands"]:
             continue

@@ -36,7 +36,7 @@ def _coverage(folder: Path, seed: int) -> list[dict]:
     from skinlayers.model import PARAMETER_NAMES
     from skinlayers.model.maps_io import read_maps
     from skinlayers.reconstruct.checks import FLAG_BITS
-    from skinlayers.reconstruct.uncertainty import MODEL_FLOOR, MODEL_FLOOR_ABSOLUTE
+    from skinlayers.reconstruct.uncertainty import MODEL_FLOOR, MODEL_FLOOR_ABSOLUTE, floor_for_coverage
 
     truth = read_maps(folder / "session" / "truth" / "maps.exr")
     fit = read_maps(folder / "reconstruction" / "maps.exr")
@@ -51,11 +51,9 @@ def _coverage(folder: Path, seed: int) -> list[dict]:
         f = getattr(fit, name)[0].double()[keep]
         sigma = torch.as_tensor(np.asarray(channels[f"sigma_{name}"])).double()[keep]
         noise = torch.as_tensor(np.asarray(channels[f"sigma_noise_{name}"])).double()[keep]
-        floor = MODEL_FLOOR[name] * (1.0 if name in MODEL_FLOOR_ABSOLUTE else f.abs())
-        data = torch.sqrt((sigma**2 - floor**2).clamp_min(0.0))
+        scale = torch.ones_like(f) if name in MODEL_FLOOR_ABSOLUTE else f.abs().clamp_min(1e-12)
         err = (f - t).abs()
-        needed = torch.sqrt(((err / 2) ** 2 - data**2).clamp_min(0.0))
-        needed = needed if name in MODEL_FLOOR_ABSOLUTE else needed / f.abs().clamp_min(1e-12)
+        data, needed = floor_for_coverage(err, sigma, MODEL_FLOOR[name], scale)
         rows.append({
             "seed": seed, "map": name, "pixels": int(keep.sum()),
             "median_error": round(float((err if name in MODEL_FLOOR_ABSOLUTE else err / t.abs()).median()), 4),
@@ -63,7 +61,7 @@ def _coverage(folder: Path, seed: int) -> list[dict]:
             "cover_data_terms": round(float((err <= 2 * data).double().mean()), 3),
             "cover_noise_share": round(float((err <= 2 * noise).double().mean()), 3),
             "median_z": round(float((err / sigma).median()), 2),
-            "floor_for_90": round(float(torch.quantile(needed, 0.9)), 4),
+            "floor_for_90": round(needed, 4),
             "model_floor": MODEL_FLOOR[name],
         })
     return rows

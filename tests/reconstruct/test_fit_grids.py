@@ -168,3 +168,15 @@ def test_a_fit_with_every_map_on_nodes_runs_and_fits(small_cube):
     losses = [h[1] for h in fit.history]
     assert losses[-1] < 0.5 * losses[0]
     assert all(bool(torch.isfinite(v).all()) for v in fit.maps.params().values())
+
+
+def test_transport_profiles_take_their_own_node_spacings():
+    """gn-hom's spacings follow the model's physics; a file naming some maps keeps that physics' others;
+    the per-pixel methods stay per pixel."""
+    from skinlayers.reconstruct.settings import TRANSPORT_MAP_CELL_MM
+
+    transport = {"profiles": "transport"}
+    assert FitSettings.model_validate({"model": transport}).cells == TRANSPORT_MAP_CELL_MM != DEFAULT_MAP_CELL_MM
+    assert FitSettings.model_validate({"model": transport, "map_cell_mm": {"C_hd": 0.75}}).cells == {**TRANSPORT_MAP_CELL_MM, "C_hd": 0.75}
+    assert FitSettings.model_validate({"map_cell_mm": {"C_hd": 0.75}}).cells == {**DEFAULT_MAP_CELL_MM, "C_hd": 0.75}
+    assert set(FitSettings.model_validate({"model": transport, "method": "gn"}).cells.values()) == {0.0}

@@ -127,3 +127,22 @@ def test_marginal_variance_is_the_dense_inverse_fisher_information(cells):
             nodes = n * n_f + idx[p, 4 * q: 4 * q + 4]
             w = wts[p, 4 * q: 4 * q + 4].double()
             torch.testing.assert_close(var[p, k], w @ cov[nodes][:, nodes] @ w, rtol=1e-7, atol=0)
+
+
+def test_the_floor_rule_covers_the_share_it_is_set_for():
+    """``floor_for_coverage``: the floor it returns, added in quadrature to σ's data terms, puts the share of
+    pixels within ±2σ it was asked for; with no data terms it is the error's quantile over twice the scale."""
+    from skinlayers.reconstruct.uncertainty import floor_for_coverage
+
+    g = torch.Generator().manual_seed(3)
+    error = torch.rand(4000, generator=g, dtype=torch.float64) * 0.2
+    scale = 0.5 + torch.rand(4000, generator=g, dtype=torch.float64)
+    data_sd = torch.rand(4000, generator=g, dtype=torch.float64) * 0.03
+    shipped = 0.02
+    sigma = torch.sqrt(data_sd**2 + (shipped * scale) ** 2)
+    data, floor = floor_for_coverage(error, sigma, shipped, scale, 0.9)
+    assert torch.allclose(data, data_sd)
+    covered = (error <= 2 * torch.sqrt(data**2 + (floor * scale) ** 2)).double().mean()
+    assert 0.9 <= float(covered) <= 0.905
+    _, bare = floor_for_coverage(error, shipped * scale, shipped, scale, 0.9)
+    assert bare == pytest.approx(float(torch.quantile(error / 2 / scale, 0.9)))
