@@ -48,6 +48,11 @@ from .uniform import fit_uniform
 from .uncertainty import MODEL_FLOOR_ABSOLUTE, MODEL_FLOORS, crosstalk_ratio, model_floor, subnode_sd
 from .unknowns import dparams_dx, extend, near_bound, pyramid, to_params, upsample
 
+#: band_weights: noise: the largest weight a band gets, in multiples of the typical band's (the root mean
+#: square noise over the used bands): a band whose measured noise is near zero (a synthetic cube, a band the
+#: camera clips) is not let to carry the fit alone
+NOISE_WEIGHT_MAX = 4.0
+
 log = logging.getLogger(__name__)
 
 __all__ = ["DEFAULT_BAND_FWHM_NM", "DEFAULT_VIEW_ANGLE_DEG", "FitEvent", "MapFit", "band_fwhm_of", "fit_cube", "view_angle_of"]
@@ -96,6 +101,7 @@ class MapFit:
     than the nodes), ``sigma_noise`` the noise's share alone; ``uncertainty`` what the widening measured;
     ``absorbers`` what the absorber step found (``absorbers.py``);
     ``band_fwhm_nm`` ``(L,)`` each band's filter width as fitted, ``band_fwhm_source`` where it came from;
+    ``band_weight`` ``(L,)`` each band's weight in the loss (0: unused; ``settings.band_weights``);
     ``history``: (CPU s, loss, level) after every accepted step of every pass (a robust pass lowers its
     own, weighted loss); ``maps_at_bound``: each map on nodes that rests at a bound somewhere, with the
     share of the loss pixels where it does (such a map flags no pixel: ``at_bound`` is a pixel's own maps);
@@ -117,6 +123,7 @@ class MapFit:
     view_angle_source: str
     band_fwhm_nm: torch.Tensor
     band_fwhm_source: str
+    band_weight: torch.Tensor | None = None
     levels: list[dict] = field(default_factory=list)
     counter: RenderCounter = field(default_factory=RenderCounter)
     cpu_s: float = 0.0
@@ -210,6 +217,8 @@ class CubeFit:
         self.hairs = _hairs(cube, self.checks)
         self.levels = pyramid(self.target, self.checks.fit_mask.to(self.device), cube.mm_per_pixel, settings.coarsest_px)
         self.pixels = tuple(lv.shape[0] * lv.shape[1] for lv in self.levels)
+        self.band_weight = band_weights(self.target, self.checks.fit_mask.to(self.device), self.checks.bands_used,
+                                        settings.band_weighting)
         self.counter = RenderCounter()
         self.records: list[dict] = []
         self.history: list[tuple[float, float, int]] = []
@@ -274,7 +283,7 @@ class CubeFit:
         out = _finish(problem, result, x, log_scale, self.checks, self.settings, self.cube.mm_per_pixel, renderer_fit, self.hairs)
         return MapFit(
             **out, checks=self.checks, wavelength_nm=self.wl, view_angle_deg=self.view, view_angle_source=self.view_source,
-            band_fwhm_nm=self.fwhm, band_fwhm_source=self.fwhm_source, levels=self.records,
+            band_fwhm_nm=self.fwhm, band_fwhm_source=self.fwhm_source, band_weight=self.band_weight.cpu(), levels=self.records,
             counter=self.counter, cpu_s=time.process_time() - self.cpu0, wall_s=time.perf_counter() - self.wall0,
             history=self.history, grid_choice=choice.as_dict() if choice else None,
             forward_choice=forward.as_dict() if forward else None,
@@ -288,8 +297,8 @@ class CubeFit:
         kw = dict(view_angle_deg=self.view, border_mm=self.settings.border_mm, band_fwhm_nm=self.fwhm,
                   map_cell_mm=self.cells if cells is None else cells, counter=self.counter)
         if light_factor is None:
-            return LevelProblem(self.renderer, level, self.wl, self.checks.bands_used, **kw)
-        return HomogeneousProblem(self.renderer, level, self.wl, self.checks.bands_used, light_factor=light_factor, **kw)
+            return LevelProblem(self.renderer, level, self.wl, self.band_weight, **kw)
+        return HomogeneousProblem(self.renderer, level, self.wl, self.band_weight, light_factor=light_factor, **kw)
 
     def noise_at(self, level) -> torch.Tensor:
         """The cube's own noise per band ``(L,)`` at a level: each 2×2 mean halves white noise's σ."""
@@ -516,6 +525,22 @@ class _HomogeneousDetour:
         found, evaluation = crosstalk_check(self.last, run.problem(fine_level, cells=self.cells), hom, x, log_scale, noise)
         self.choice.checks.append(found)
         return evaluation
+
+
+def band_weights(target: torch.Tensor, mask: torch.Tensor, used: torch.Tensor, mode: str) -> torch.Tensor:
+    """Each band's weight in the loss ``(L,)`` float64 (0 for an unused band) for a cube ``(L, H, W)`` and its
+    fit ``mask`` ``(H, W)``: with ``mode`` noise, the typical band's noise over the band's own
+    (``band_noise``: the least-squares fit of unequal noise, the estimate σ describes), at most
+    ``NOISE_WEIGHT_MAX``; equal (or a cube too small to measure its noise): 1 for every used band."""
+    weight = used.to(torch.float64).cpu()
+    if mode == "equal" or int(used.sum()) < 2:
+        return weight
+    try:
+        noise = band_noise(target, mask).cpu()
+    except ValueError:  # too few pixels to measure the noise: every band alike
+        return weight
+    typical = noise[used.cpu()].pow(2).mean().sqrt()
+    return weight * (typical / noise).clamp(max=NOISE_WEIGHT_MAX)
 
 
 def _require_memory(cube: Cube, settings: FitSettings, dtype: torch.dtype, device: torch.device) -> None:

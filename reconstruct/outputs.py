@@ -64,6 +64,7 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
         "view_angle_source": fit.view_angle_source,
         "band_fwhm_nm": [float(w) for w in fit.band_fwhm_nm.tolist()],
         "band_fwhm_source": fit.band_fwhm_source,
+        "band_weight": None if fit.band_weight is None else [round(float(w), 4) for w in fit.band_weight.tolist()],
         "method": settings.method,
         "start": settings.start,
         "scale": fit.scale,

@@ -111,14 +111,15 @@ class OptimResult:
 
 
 class LevelProblem:
-    """One level of the coarse-to-fine fit: data, light and renderer settings."""
+    """One level of the coarse-to-fine fit: data, light and renderer settings. ``band_weight`` ``(L,)``: each
+    band's weight in the loss, 0 for a band left out (``fit.band_weights``; a bool mask weighs every used band 1)."""
 
     def __init__(
         self,
         renderer: SkinRenderer,
         level: Level,
         wavelength_nm: torch.Tensor,
-        bands_used: torch.Tensor,
+        band_weight: torch.Tensor,
         *,
         view_angle_deg: float,
         border_mm: float,
@@ -146,7 +147,7 @@ class LevelProblem:
         self.pixel_weight: torch.Tensor | None = None
         #: grey interface absorbance P ``(H, W)`` the render adds (hairs; ``absorbers.py``), None: none
         self.absorbance: torch.Tensor | None = None
-        self.band_weight = bands_used.to(level.target.dtype).to(level.target.device)
+        self.band_weight = band_weight.to(level.target.dtype).to(level.target.device)
         self.target = level.target.reshape(level.target.shape[0], -1)[:, self.pixels].T.contiguous()  # (N, L)
         self.counter = counter or RenderCounter()
         self.exit = exit_factor(

@@ -36,6 +36,10 @@ TRANSPORT_MAP_CELL_MM = {**DEFAULT_MAP_CELL_MM, "C_he": 0.25, "C_hd": 0.5}
 #: gn-hom's node spacings by the model's ``profiles``.
 MAP_CELL_MM_BY_PROFILES = {"diffusion": DEFAULT_MAP_CELL_MM, "transport": TRANSPORT_MAP_CELL_MM}
 _PER_PIXEL = dict.fromkeys(DEFAULT_MAP_CELL_MM, 0.0)
+#: How the loss weighs the bands, by the model's ``profiles`` (``band_weights`` left out): transport, close to
+#: the Monte Carlo in every band, gains from trusting the quiet bands more; diffusion's error is largest in the
+#: quiet blue and green bands, so weighing them up costs it melanin (docs/reconstruct.md, "Band weights").
+BAND_WEIGHTS_BY_PROFILES = {"diffusion": "equal", "transport": "noise"}
 
 
 class FitSettings(Strict):
@@ -134,6 +138,16 @@ class FitSettings(Strict):
             "hairs: beta_m 0.100 against 0.126 on the demo's scene with five hairs). docs/reconstruct.md, \"Settings\"."
         ),
     )
+    band_weights: Literal["noise", "equal"] | None = Field(
+        None,
+        description=(
+            "How the loss weighs the bands: noise, each band by the inverse of the cube's own noise there (measured "
+            "on the cube, reconstruct/grid_choice.band_noise; a band's weight at most fit.NOISE_WEIGHT_MAX times the "
+            "typical band's): the least-squares fit of unequal noise; equal: every band alike, as DWRR08 §6.3's fit. "
+            "None: by the model's profiles (BAND_WEIGHTS_BY_PROFILES: noise with transport, equal with diffusion). "
+            "docs/reconstruct.md, \"Band weights\"."
+        ),
+    )
     robust_scale: float = Field(2.0, gt=0, description="The Cauchy weight's scale, in multiples of the median pixel's residual RMS.")
     free_scale: bool = Field(
         False,
@@ -223,6 +237,11 @@ class FitSettings(Strict):
 
     def _default_cells(self) -> dict[str, float]:
         return dict(_PER_PIXEL if self.method in PER_PIXEL_METHODS else MAP_CELL_MM_BY_PROFILES[self.model.profiles])
+
+    @property
+    def band_weighting(self) -> str:
+        """How the loss weighs the bands as the fit does it (``band_weights`` resolved by the profiles)."""
+        return self.band_weights or BAND_WEIGHTS_BY_PROFILES[self.model.profiles]
 
     @property
     def coarse_maps(self) -> list[str]:

@@ -98,6 +98,9 @@ INVERSE_CONFIGS: dict[str, dict] = {
     "transport, segment, C_hd 0.75 mm": {"model": {"profiles": "transport", "render": {"coupling": "segment"}},
                                          "map_cell_mm": {"C_hd": 0.75}},
     "transport, grids auto": {"model": {"profiles": "transport"}, "map_grids": "auto", "forward": "heterogeneous"},
+    # the loss's band weights, each physics with the other's (by default noise with transport, equal with diffusion)
+    "transport, equal weights": {"model": {"profiles": "transport"}, "band_weights": "equal"},
+    "diffusion, noise weights": {"model": {"profiles": "diffusion"}, "band_weights": "noise"},
     "gn": {"method": "gn", "forward": "heterogeneous"},
     "adam": {"method": "adam", "forward": "heterogeneous"},
     "start paper": {"start": "paper"},
@@ -120,7 +123,7 @@ SCALE_CONFIGS: dict[str, dict] = {
                                           "max_iterations": SCALE_PAPER_STEPS // FIRST_ORDER_CAP, "ftol": 1e-12},
 }
 QUICK_INVERSE = ("default", "fixed", "homogeneous", "paper", "transport", "transport, C_hd 0.75 mm", "transport, segment",
-                 "ftol 1e-2", "binned 2x2")
+                 "transport, equal weights", "ftol 1e-2", "binned 2x2")
 QUICK_SCALE_PX = (32, 64)
 #: Marked on the charts.
 MARKED = {"default": "default (--model auto)", "fixed": "--model fixed", "paper": "DWRR08's scheme"}
@@ -132,7 +135,7 @@ FAITHFUL_CONFIG = {"forward": "heterogeneous", "dtype": "float64", "ftol": 1e-4,
 DIFFUSION_SEED_BASE = 61
 #: Knob columns: what each row's configuration set (empty: the default).
 KNOBS = ("physics", "coupling", "gaussians", "series_tolerance", "blur", "border_mm", "dtype", "method", "start", "model",
-         "coarsest_px", "ftol", "map_grids", "map_cells", "free_scale", "robust_passes", "max_iterations", "bin")
+         "coarsest_px", "ftol", "map_grids", "map_cells", "band_weights", "free_scale", "robust_passes", "max_iterations", "bin")
 COLUMNS = ("part", "config", "scene", "truth", "size_px", *KNOBS, "wall_s", "cpu_s", "peak_mb",
            *(f"error_{m}" for m in MAPS), "score", *(f"sigma_coverage_{m}" for m in TARGETS), "error_vs_mc", "mc_std_error", "error_vs_own", "residual_over_noise", "band_bias_max",
            "converged", "iterations", "pareto")
@@ -282,7 +285,7 @@ def _inverse_knobs(over: dict) -> dict:
     cells = s.cells
     return {"physics": s.model.profiles, "coupling": s.model.render.coupling, "dtype": s.dtype, "method": s.method,
             "start": s.start, "model": s.forward, "coarsest_px": s.coarsest_px, "ftol": s.ftol, "map_grids": s.map_grids,
-            "map_cells": " ".join(f"{k}:{v:g}" for k, v in cells.items()), "free_scale": s.free_scale, "robust_passes": s.robust_passes,
+            "map_cells": " ".join(f"{k}:{v:g}" for k, v in cells.items()), "band_weights": s.band_weighting, "free_scale": s.free_scale, "robust_passes": s.robust_passes,
             "max_iterations": s.max_iterations, "bin": over.get("bin", 1)}
 
 
