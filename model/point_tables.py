@@ -21,17 +21,14 @@ coefficients ``(L·(S-1)², 5·16)`` for S nodes per axis.
 from __future__ import annotations
 
 import itertools
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 
 from .params import N_PARAMS, SkinParams, layer_absorption_jacobian, parameter_bounds
 from .radiometry import entry_transmittance
 
-if TYPE_CHECKING:  # annotations only: layered builds these tables (no import circle)
-    from .layered import SkinModel
-
-__all__ = ["POINT_TABLE_NODES", "PointTables"]
+__all__ = ["POINT_TABLE_NODES", "ColumnModel", "PointTables"]
 
 #: Nodes per axis of log σa. Error against the exact model (docs/model.md): the interpolation is
 #: fourth order, so doubling the nodes divides it by ~16; 48 keeps the fit's model within 1e-6
@@ -46,6 +43,19 @@ _HERMITE = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [-3.0, 3.0,
                         dtype=torch.float64)
 
 
+class ColumnModel(Protocol):
+    """What the tables need of the homogeneous column (``layered.SkinModel``, which builds them: named by
+    its shape, not imported, so that the two modules do not import each other)."""
+
+    settings: object
+
+    def spectra(self, wavelength_nm: torch.Tensor): ...
+
+    def absorption(self, params: SkinParams, spectra): ...
+
+    def transforms_at(self, *args, **kwargs): ...
+
+
 class PointTables:
     """The model's five layer totals at L bands on an S × S grid of (log σa_epi, log σa_derm).
 
@@ -53,7 +63,7 @@ class PointTables:
     Jacobian with respect to the parameters, as ``SkinModel.diffuse_reflectance`` (specular excluded).
     """
 
-    def __init__(self, model: SkinModel, wavelength_nm: torch.Tensor, log_lo: torch.Tensor, log_step: torch.Tensor,
+    def __init__(self, model: ColumnModel, wavelength_nm: torch.Tensor, log_lo: torch.Tensor, log_step: torch.Tensor,
                  coefficients: torch.Tensor, nodes: int) -> None:
         self.model = model
         self.wavelength_nm = wavelength_nm
@@ -66,7 +76,7 @@ class PointTables:
         self.spectra = model.spectra(wavelength_nm)
 
     @classmethod
-    def build(cls, model: SkinModel, wavelength_nm: torch.Tensor, nodes: int = POINT_TABLE_NODES) -> "PointTables":
+    def build(cls, model: ColumnModel, wavelength_nm: torch.Tensor, nodes: int = POINT_TABLE_NODES) -> "PointTables":
         """Exact totals and their log-σa derivatives at the nodes (one backward pass per total), then each
         cell's bicubic Hermite coefficients."""
         if nodes < 4:
@@ -162,7 +172,7 @@ class PointTables:
         return r, self.entry * jac
 
 
-def _absorption_range(model: SkinModel, spectra) -> tuple[torch.Tensor, torch.Tensor]:
+def _absorption_range(model: ColumnModel, spectra) -> tuple[torch.Tensor, torch.Tensor]:
     """Least and greatest σa of each layer ``(2, L)`` over the parameter box: σa is multilinear in the
     parameters (Eq. 11–12), so its extremes are at the box's corners."""
     lo, hi = parameter_bounds(torch.float64)

@@ -130,7 +130,7 @@ def make_plan(quick: bool = False, seed: int = 0) -> StabilityPlan:
 def run_stability(out: Path, *, quick: bool = False, seed: int = 0, device: str = "cpu", say=None,
                   plan: StabilityPlan | None = None) -> StabilityResult:
     """Measure ``plan`` into ``out`` (a rerun measures only the missing cells), then the summary and charts."""
-    from .stability_charts import draw_heat_maps  # noqa: PLC0415
+    from .stability_charts import CellTargets, draw_heat_maps  # noqa: PLC0415
 
     start = time.perf_counter()
     plan = plan or make_plan(quick, seed)
@@ -143,7 +143,7 @@ def run_stability(out: Path, *, quick: bool = False, seed: int = 0, device: str 
                    seconds=round(time.perf_counter() - start, 1))
     summary_path = out / "stability.json"
     summary_path.write_text(json.dumps(summary, indent=1) + "\n")
-    charts = draw_heat_maps(table.rows, plan, out)
+    charts = draw_heat_maps(table.rows, plan, out, CellTargets(TARGETS, RESIDUAL_AT_NOISE, SIGMA_COVER, names_cause))
     return StabilityResult(table.path, summary_path, charts, summary, time.perf_counter() - start)
 
 

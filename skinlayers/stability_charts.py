@@ -6,40 +6,51 @@ met, told (a warning naming the condition), told, not why (a warning naming anot
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
-__all__ = ["draw_heat_maps", "worst_ratio"]
+__all__ = ["CellTargets", "draw_heat_maps", "worst_ratio"]
 
 #: Colour scale of the worst ratio (log): green below the target, red beyond.
 RATIO_RANGE = (0.1, 10.0)
 
 
-def worst_ratio(row: dict) -> float:
+@dataclass(frozen=True)
+class CellTargets:
+    """What a cell is held to (the stability matrix's ``TARGETS``, ``RESIDUAL_AT_NOISE``, ``SIGMA_COVER``) and
+    whether its warnings name its condition (``names_cause``): given by the matrix, so the charts need not
+    import it."""
+
+    maps: dict[str, float]
+    residual_at_noise: float
+    sigma_cover: float
+    names_cause: Callable[[dict], bool]
+
+
+def worst_ratio(row: dict, targets: CellTargets) -> float:
     """The cell's largest ratio to a target: each map's error over its target, the residual over its
     limit, the σ coverage wanted over the coverage had, on the scored pixels and on the hair-flagged ones
     (1: exactly at the worst target)."""
-    from .stability import RESIDUAL_AT_NOISE, SIGMA_COVER, TARGETS  # noqa: PLC0415
-
     try:
-        ratios = [float(row[f"error_{m}"]) / t for m, t in TARGETS.items()]
-        ratios.append(float(row["residual_over_noise"]) / RESIDUAL_AT_NOISE)
-        ratios.append(SIGMA_COVER / max(float(row["sigma_cover"]), 1e-3))
+        ratios = [float(row[f"error_{m}"]) / t for m, t in targets.maps.items()]
+        ratios.append(float(row["residual_over_noise"]) / targets.residual_at_noise)
+        ratios.append(targets.sigma_cover / max(float(row["sigma_cover"]), 1e-3))
         flagged = float(row.get("sigma_cover_flagged") or "nan")
         if math.isfinite(flagged):
-            ratios.append(SIGMA_COVER / max(flagged, 1e-3))
+            ratios.append(targets.sigma_cover / max(flagged, 1e-3))
     except (TypeError, ValueError, KeyError):
         return math.nan  # a refused cell has no maps
     return max(ratios)
 
 
-def draw_heat_maps(rows: list[dict], plan, out: Path) -> list[Path]:
+def draw_heat_maps(rows: list[dict], plan, out: Path, targets: CellTargets) -> list[Path]:
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
     from matplotlib.colors import LogNorm  # noqa: PLC0415
 
-    from .stability import names_cause  # noqa: PLC0415
     from .sweep import cell_text  # noqa: PLC0415
 
     paths = []
@@ -54,9 +65,9 @@ def draw_heat_maps(rows: list[dict], plan, out: Path) -> list[Path]:
                 row = next((r for r in rows if r["method"] == method and r["condition"] == name and str(r["strength"]) == cell_text(s)), None)
                 if row is None:
                     continue
-                grid[i][j] = worst_ratio(row)
+                grid[i][j] = worst_ratio(row, targets)
                 met, told = str(row["meets_targets"]) == "True", str(row["detected"]) == "True"
-                mark = "met" if met else ("told" if told and names_cause(row) else "told, not why" if told else "SILENT")
+                mark = "met" if met else ("told" if told and targets.names_cause(row) else "told, not why" if told else "SILENT")
                 ax.text(j, i, f"{s}\n{mark}" if s != "" else mark, ha="center", va="center", fontsize=7,
                         fontweight="bold" if mark == "SILENT" else "normal")
         image = ax.imshow(grid, cmap="RdYlGn_r", norm=LogNorm(*RATIO_RANGE), aspect="auto")

@@ -107,11 +107,7 @@ def test_fitting_a_cube_does_not_load_opencv():
 
 # Import circles inside a part (any import: at module level, inside a function, or for annotations only
 # under ``if TYPE_CHECKING:``): none but these, each broken by issue 57's rooms.
-_KNOWN_CIRCLES: set = {
-    frozenset({"model.layered", "model.point_tables"}),
-    frozenset({"skinlayers.stability", "skinlayers.stability_charts"}),
-    frozenset({"skinlayers.demo", "skinlayers.truths"}),
-}
+_KNOWN_CIRCLES: set = {frozenset({"skinlayers.demo", "skinlayers.truths"})}
 
 
 def _module_imports(part: str) -> dict[str, set[str]]:

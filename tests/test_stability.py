@@ -236,11 +236,13 @@ def test_the_same_seed_gives_the_same_cells_twice(small, tmp_path):
 
 
 def test_a_cell_coloured_by_its_worst_target_hair_flagged_pixels_included():
-    from skinlayers.stability_charts import worst_ratio
+    from skinlayers.stability import TARGETS, names_cause
+    from skinlayers.stability_charts import CellTargets, worst_ratio
 
+    targets = CellTargets(TARGETS, RESIDUAL_AT_NOISE, SIGMA_COVER, names_cause)
     row = _row(sigma_cover_flagged="")
-    assert worst_ratio(row) == pytest.approx(max(0.5, 1.0 / RESIDUAL_AT_NOISE, SIGMA_COVER / 0.9))
-    assert worst_ratio(_row(sigma_cover_flagged=SIGMA_COVER / 2)) == pytest.approx(2.0)
+    assert worst_ratio(row, targets) == pytest.approx(max(0.5, 1.0 / RESIDUAL_AT_NOISE, SIGMA_COVER / 0.9))
+    assert worst_ratio(_row(sigma_cover_flagged=SIGMA_COVER / 2), targets) == pytest.approx(2.0)
 
 
 def test_bad_input_ends_in_one_line(run_cli, tmp_path):
