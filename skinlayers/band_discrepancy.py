@@ -65,7 +65,7 @@ class Discrepancy:
 
 def _measuring_rig(rig, cube_px: int):
     """The rig with its cube at most ``cube_px``² (its window unchanged), photographed by the simulator."""
-    from .demo import MIN_RECTIFY_PX  # noqa: PLC0415
+    from .truths import MIN_RECTIFY_PX  # noqa: PLC0415
 
     g = rig.geometry
     n = min(cube_px, g.cube_px)
@@ -81,7 +81,7 @@ def measure_discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = 
     from .acquire._optics import band_spectrum  # noqa: PLC0415
     from .acquire.scene import scene_from_dict  # noqa: PLC0415
     from .acquire.simulated import SimulatedBench  # noqa: PLC0415
-    from .demo import demo_scene  # noqa: PLC0415
+    from .truths import demo_scene  # noqa: PLC0415
 
     start = time.perf_counter()
     filters = list(dict.fromkeys(filters))
@@ -145,7 +145,7 @@ def discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPA
     settings): a later design reads back the filters measured before and measures the others only;
     ``say`` reports a measurement's start."""
     from .acquire.simulation_settings import load_simulation_settings  # noqa: PLC0415
-    from .demo import demo_scene  # noqa: PLC0415
+    from .truths import demo_scene  # noqa: PLC0415
     from .formats.files import atomic_write  # noqa: PLC0415
     from .model.settings import ModelSettings  # noqa: PLC0415
     from .model.tables import default_cache_dir  # noqa: PLC0415

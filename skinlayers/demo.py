@@ -21,14 +21,11 @@ from .formats.outputs import refuse_inside_session
 from .formats.version import software_version
 from .formats.threads import THREADS_HELP, command_threads
 
-__all__ = ["accuracy_against_truth", "demo", "map_errors", "register", "scored_pixels", "session_rig", "sigma_coverage",
-           "simulate_session"]
+__all__ = ["accuracy_against_truth", "demo", "map_errors", "register", "scored_pixels", "sigma_coverage", "simulate_session"]
 
 #: Folder the demo writes to when none is given; taken with a suffix (-2, -3, …) when it exists.
 DEFAULT_FOLDER = "skinlayers-demo"
-#: The coarsest rectified window the calibration works on: at 64 px the gray card's region, moved by the
-#: subject's motion, reaches into the window's (so --size 32 rectifies at 128 px, not 64).
-MIN_RECTIFY_PX = 128
+
 
 
 def fresh_folder(base: Path) -> Path:
@@ -39,23 +36,6 @@ def fresh_folder(base: Path) -> Path:
     while (candidate := base.with_name(f"{base.name}-{n}")).exists():
         n += 1
     return candidate
-
-
-def demo_scene() -> dict:
-    """The demo's scene: the simulator's default without hairs. Hairs are interface absorbance the fit's
-    model does not hold; their halo in red light biases the maps around them (measured in docs/accuracy.md)."""
-    from .acquire.scene import load_scene  # noqa: PLC0415
-
-    scene = load_scene(None).model_dump(mode="json")
-    scene["hairs"]["count"] = 0
-    return scene
-
-
-def session_rig(size: int):
-    """The default rig at a ``size``² cube, its camera simulated (as the demo photographs with)."""
-    from .acquire.rig import load_rig  # noqa: PLC0415
-
-    return load_rig(geometry={"cube_px": size, "rectify_px": max(2 * size, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
 
 
 def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> dict:
@@ -213,19 +193,13 @@ def demo(
              skinlayers demo --size 64  (a 64×64 cube, quicker)
              skinlayers demo --size 32 --physics transport --photons 200000   (the truth by Monte Carlo)
     """
-    import yaml  # noqa: PLC0415
-
     truth = _checked_options(out, size, device, scene, physics, photons)
     typer.echo(f"threads: {command_threads(threads).describe()}")
     folder = out if out is not None else fresh_folder(Path(DEFAULT_FOLDER))
     folder.mkdir(parents=True, exist_ok=True)
     session, calibrated, reconstruction = folder / "session", folder / "calibrated", folder / "reconstruction"
-    rig = session_rig(size)
-    (folder / "rig.yaml").write_text(yaml.safe_dump(rig.model_dump(mode="json"), sort_keys=False))
     kept = _shipped_renders(truth, seed, size, scene_given=scene is not None)
-    if scene is None:
-        scene = folder / "scene.yaml"
-        scene.write_text(yaml.safe_dump(demo_scene(), sort_keys=False))
+    rig, scene = _write_setup(folder, size, scene)
     times: dict[str, float] = {}
 
     def step(title: str) -> float:
@@ -248,6 +222,21 @@ def demo(
     _figure(session, reconstruction, folder / "truth_vs_fit.png")
     _print_accuracy(accuracy)
     _print_folder(folder, session, calibrated / CUBE_NAME, reconstruction, times)
+
+
+def _write_setup(folder: Path, size: int, scene: Path | None):
+    """The rig at ``size`` and the scene (the demo's where none is given), written into ``folder`` as
+    rig.yaml and scene.yaml; returns the rig and the scene file."""
+    import yaml  # noqa: PLC0415
+
+    from .truths import demo_scene, session_rig  # noqa: PLC0415
+
+    rig = session_rig(size)
+    (folder / "rig.yaml").write_text(yaml.safe_dump(rig.model_dump(mode="json"), sort_keys=False))
+    if scene is None:
+        scene = folder / "scene.yaml"
+        scene.write_text(yaml.safe_dump(demo_scene(), sort_keys=False))
+    return rig, scene
 
 
 def _shipped_renders(truth: dict, seed: int, size: int, scene_given: bool) -> dict | None:

@@ -183,9 +183,8 @@ TradeoffResult = AnalysisResult
 
 
 def make_plan(quick: bool = False, seed: int = 0, cube: Path | None = None) -> TradeoffPlan:
-    """The quick run: the renderer's main choices, one session of each physics (diffusion at 32², the
-    Monte Carlo at 64², the size a user fits), scale to 64²; the full run: every choice, three sessions of
-    each physics, scale to 512²."""
+    """The quick run: the main choices, one session of each physics (diffusion at 32², the Monte Carlo at
+    64², the size a user fits), scale to 64²; the full run: every choice, three sessions each, scale to 512²."""
     from .truths import SESSION_PX, SESSION_PX_64, SESSION_SEEDS_64  # noqa: PLC0415
 
     n = 1 if quick else 3
@@ -388,7 +387,8 @@ def make_session(spec: SessionSpec, folder: Path, scene_over: dict | None = None
 
     from .acquire.simulation_settings import default_simulation_path  # noqa: PLC0415
     from .calibration import calibrate_session  # noqa: PLC0415
-    from .demo import demo_scene, session_rig, simulate_session  # noqa: PLC0415
+    from .demo import simulate_session  # noqa: PLC0415
+    from .truths import demo_scene, session_rig  # noqa: PLC0415
     from .formats.settings import merge  # noqa: PLC0415
 
     if folder.exists():

@@ -29,10 +29,13 @@ import numpy as np
 import torch
 
 __all__ = ["FORWARD_SCENES", "FORWARD_WAVELENGTHS_NM", "SESSIONS", "SESSION_PX", "SESSION_PX_64", "SESSION_SEEDS",
-           "SESSION_SEEDS_64", "TRUTH_DIR", "ForwardScene",
+           "SESSION_SEEDS_64", "TRUTH_DIR", "ForwardScene", "MIN_RECTIFY_PX", "demo_scene", "session_rig",
            "forward_scene", "forward_truth", "make_forward_truths", "make_session_truth", "session_renders",
            "shipped_session"]
 
+#: The coarsest rectified window the calibration works on: at 64 px the gray card's region, moved by the
+#: subject's motion, reaches into the window's (so --size 32 rectifies at 128 px, not 64).
+MIN_RECTIFY_PX = 128
 #: Where the shipped truths live (package data).
 TRUTH_DIR = Path(__file__).resolve().parent / "data" / "truths"
 #: The forward scenes' wavelengths: blue, green and red light reach the dermis differently.
@@ -72,6 +75,23 @@ FORWARD_SCENES = {
 }
 #: Per-pixel errors leave out the feature's first this many mm (its edge is sub-pixel).
 FEATURE_EDGE_MM = 0.1
+
+
+def demo_scene() -> dict:
+    """The demo's scene: the simulator's default without hairs. Hairs are interface absorbance the fit's
+    model does not hold; their halo in red light biases the maps around them (measured in docs/accuracy.md)."""
+    from .acquire.scene import load_scene  # noqa: PLC0415
+
+    scene = load_scene(None).model_dump(mode="json")
+    scene["hairs"]["count"] = 0
+    return scene
+
+
+def session_rig(size: int):
+    """The default rig at a ``size``² cube, its camera simulated (as the demo photographs with)."""
+    from .acquire.rig import load_rig  # noqa: PLC0415
+
+    return load_rig(geometry={"cube_px": size, "rectify_px": max(2 * size, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
 
 
 @dataclass(frozen=True)
@@ -220,7 +240,6 @@ def make_session_truth(seed: int, out: Path = TRUTH_DIR, photons: int = SESSION_
     from .acquire.scene import scene_from_dict  # noqa: PLC0415
     from .acquire.simulated import SimulatedBench  # noqa: PLC0415
     from .acquire.simulation_settings import load_simulation_settings  # noqa: PLC0415
-    from .demo import demo_scene, session_rig  # noqa: PLC0415
     from .formats.version import software_version  # noqa: PLC0415
 
     out.mkdir(parents=True, exist_ok=True)
@@ -287,7 +306,6 @@ def shipped_session(seed: int, size_px: int, photons: int | None = None, folder:
     if not (folder / f"session_{seed}.json").exists():
         return None
     record = json.loads((folder / f"session_{seed}.json").read_text())
-    from .demo import demo_scene  # noqa: PLC0415
 
     if record["cube_px"] != size_px or record["scene"] != demo_scene() or photons not in (None, record["photons_per_node"]):
         return None

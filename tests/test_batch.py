@@ -26,7 +26,8 @@ def made_sessions(tmp_path_factory) -> Path:
     import yaml
 
     from skinlayers.acquire.rig import load_rig
-    from skinlayers.demo import demo_scene, simulate_session
+    from skinlayers.demo import simulate_session
+    from skinlayers.truths import demo_scene
 
     folder = tmp_path_factory.mktemp("made")
     by_nm = {b.wavelength_nm: b for b in load_rig().bands}

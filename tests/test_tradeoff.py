@@ -89,7 +89,7 @@ def test_a_session_photographed_from_the_shipped_monte_carlo(tmp_path):
     from skinlayers.acquire.simulated import SimulatedBench
     from skinlayers.acquire.simulation_settings import load_simulation_settings
     from skinlayers.acquire.simulation_settings import SimulationError
-    from skinlayers.demo import session_rig
+    from skinlayers.truths import session_rig
 
     record, renders = session_renders(SESSION_SEEDS[0])
     settings = load_simulation_settings(None, truth={"physics": "transport", "photons": record["photons_per_node"]})
@@ -135,7 +135,7 @@ def test_the_64px_monte_carlo_sessions_are_finer_than_the_camera_and_fitted_by_t
     model floor), melanin and epidermal blood near the truth and σ covering it."""
     import numpy as np
 
-    from skinlayers.demo import demo_scene
+    from skinlayers.truths import demo_scene
     from skinlayers.formats.cube import read_cube
     from skinlayers.formats.exr import read_spectral
     from skinlayers.tradeoff import make_session

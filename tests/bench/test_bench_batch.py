@@ -41,7 +41,8 @@ def _sessions(count: int) -> Path:
     import yaml
 
     from skinlayers.calibration import calibrate_session
-    from skinlayers.demo import demo_scene, session_rig, simulate_session
+    from skinlayers.demo import simulate_session
+    from skinlayers.truths import demo_scene, session_rig
     from skinlayers.formats.cube import calibrated_dir
 
     folder = out_dir() / "batch_sessions"
