@@ -57,18 +57,20 @@ _PARTS = {"formats", "model", "acquire", "calibration", "reconstruct", "configs"
 
 
 def _imported_parts(path: Path, part: str) -> set[str]:
-    """The project parts a module imports (at the top or inside functions), from its ``import`` lines."""
+    """The project parts a module imports (at the top or inside functions), from its ``import`` lines: a
+    relative import resolved from the module's own folder, however deep in its part's rooms."""
     import ast
 
+    package = list(path.relative_to(ROOT).parent.parts)  # e.g. ["reconstruct", "mapfit"]
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom):
             if node.level == 0 and node.module and node.module.startswith("skinlayers."):
                 found.add(node.module.split(".")[1])
-            elif node.level == 2 and node.module:
-                found.add(node.module.split(".")[0])
-            elif node.level == 2:
-                found.update(alias.name for alias in node.names)
+            elif node.level:
+                base = package[: len(package) - node.level + 1]
+                names = [*base, *node.module.split(".")] if node.module else base
+                found.update([names[0]] if names else [alias.name.split(".")[0] for alias in node.names])
         elif isinstance(node, ast.Import):
             found.update(alias.name.split(".")[1] for alias in node.names if alias.name.startswith("skinlayers."))
     return (found & _PARTS) - {part}
@@ -86,11 +88,19 @@ def test_parts_depend_only_downward():
     assert not wrong, wrong
 
 
-def test_the_import_rule_sees_a_wrong_import(tmp_path):
-    """The check above can fail: a module of reconstruct importing calibration is caught."""
-    bad = tmp_path / "bad.py"
+def test_the_import_rule_sees_a_wrong_import(tmp_path, monkeypatch):
+    """The check above can fail: a module of reconstruct importing calibration is caught, from the part's
+    root and from a room inside it; imports within the part are not."""
+    import sys
+
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    (tmp_path / "reconstruct" / "room").mkdir(parents=True)
+    bad = tmp_path / "reconstruct" / "bad.py"
     bad.write_text("def f():\n    from ..calibration.pipeline import calibrate_session\n    from .fit import fit_cube\n")
     assert _imported_parts(bad, "reconstruct") == {"calibration"}
+    deep = tmp_path / "reconstruct" / "room" / "bad.py"
+    deep.write_text("from ...calibration import pipeline\nfrom ..other.fit import fit_cube\nfrom . import sibling\n")
+    assert _imported_parts(deep, "reconstruct") == {"calibration"}
 
 
 def test_fitting_a_cube_does_not_load_opencv():
