@@ -6,7 +6,7 @@ dermis's scattering (half the epidermis's, §5.1) for every skin. Real skin vari
 spectrum may carry the evidence: ``point_reflectance`` is ``SkinModel.diffuse_reflectance`` (the
 exact diffusion totals, DWRR08 §3 Eq. 3) with any of them given per spectrum instead, differentiable
 in each, so a fit can free them one at a time and a criterion can judge whether the residual paid for
-them (``reconstruct/spectrum_models.py``).
+them (``reconstruct/spectrum/spectrum_models.py``).
 
 Shapes: parameters and constants ``(B,)``, wavelengths ``(L,)`` → spectra ``(B, L)``.
 """

@@ -7,12 +7,12 @@
   uncertainties; ``write_outputs`` writes maps.exr, fit.json, report.png and the resolved settings.
 """
 
-from .fit import FitEvent, MapFit, fit_cube
-from .optimizers import METHODS
-from .outputs import fit_summary, reconstruct_cube, write_outputs
+from .mapfit.fit import FitEvent, MapFit, fit_cube
+from .mapfit.optimizers import METHODS
+from .results.outputs import fit_summary, reconstruct_cube, write_outputs
 from .settings import FitSettings, FitSettingsError, load_fit_settings
-from .spectrum_fit import PAPER_START, SpectrumFit, fit_spectra
-from .spectrum_models import SpectrumModel, SpectrumSelection, select_spectrum_models
+from .spectrum.spectrum_fit import PAPER_START, SpectrumFit, fit_spectra
+from .spectrum.spectrum_models import SpectrumModel, SpectrumSelection, select_spectrum_models
 
 __all__ = [
     "METHODS",

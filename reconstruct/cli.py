@@ -15,9 +15,9 @@ from ..formats.cube import CUBE_NAME, calibrated_dir, reconstruction_dir
 from ..formats.errors import InputError
 from ..formats.outputs import check_outputs, write_file
 from ..model import PARAMETER_NAMES, SkinModel, load_model_settings
-from .spectra_io import read_spectra_csv
-from .spectrum_fit import METHODS
-from .spectrum_models import MODEL_CHOICES, candidate_label, select_spectrum_models, spectrum_candidates
+from .spectrum.spectra_io import read_spectra_csv
+from .spectrum.spectrum_fit import METHODS
+from .spectrum.spectrum_models import MODEL_CHOICES, candidate_label, select_spectrum_models, spectrum_candidates
 from ..formats.threads import THREADS_HELP, command_threads
 
 __all__ = ["fit_progress", "print_fit_summary", "register", "resolve_cube_path"]
@@ -288,7 +288,7 @@ def reconstruct(
     fit_settings.yaml. Example: skinlayers reconstruct my-session  (after skinlayers calibrate my-session)
     """
     from ..formats.cube import read_cube  # noqa: PLC0415
-    from .outputs import OUTPUT_NAMES, reconstruct_cube  # noqa: PLC0415
+    from .results.outputs import OUTPUT_NAMES, reconstruct_cube  # noqa: PLC0415
     from .settings import load_fit_settings  # noqa: PLC0415
 
     if device not in ("cpu", "cuda", "auto"):
@@ -344,7 +344,7 @@ def fit_progress(settings, bands: int):
     from rich.console import Console  # noqa: PLC0415
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn  # noqa: PLC0415
 
-    from .fit import FitEvent  # noqa: PLC0415
+    from .mapfit.fit import FitEvent  # noqa: PLC0415
 
     expected = _EXPECTED_ITERATIONS.get(settings.method, 20) * (1 + settings.robust_passes)
     with Progress(
@@ -378,13 +378,13 @@ def fit_progress(settings, bands: int):
 
 
 def _flag_counts(fit) -> dict[str, int]:
-    from .checks import FLAG_BITS  # noqa: PLC0415
+    from .diagnosis.checks import FLAG_BITS  # noqa: PLC0415
 
     return {name: int(((fit.flags >> bit) & 1).sum()) for name, bit in FLAG_BITS.items()}
 
 
 def _visible_rms(fit) -> float:
-    from .checks import FLAG_BITS  # noqa: PLC0415
+    from .diagnosis.checks import FLAG_BITS  # noqa: PLC0415
 
     visible = ((fit.flags >> FLAG_BITS["masked"]) & 1) == 0
     used = fit.checks.bands_used

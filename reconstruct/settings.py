@@ -15,7 +15,7 @@ from pydantic import Field, model_validator
 from ..formats.errors import SettingsError
 from ..formats.settings import Strict, load_settings
 from ..model import ModelSettings
-from .optimizers import METHODS, PER_PIXEL_METHODS
+from .mapfit.optimizers import METHODS, PER_PIXEL_METHODS
 
 __all__ = ["DEFAULT_MAP_CELL_MM", "MAP_CELL_MM_BY_PROFILES", "TRANSPORT_MAP_CELL_MM", "FitSettings", "FitSettingsError", "load_fit_settings"]
 
@@ -48,7 +48,7 @@ class FitSettings(Strict):
     method: str = Field(
         "gn-hom",
         description=(
-            "Optimiser (the table in reconstruct/optimizers.py): gn-hom (Gauss–Newton with each pixel's "
+            "Optimiser (the table in reconstruct/mapfit/optimizers.py): gn-hom (Gauss–Newton with each pixel's "
             "homogeneous Jacobian on the heterogeneous residual: forward renders only), gn (the same "
             "curvature with the exact gradient from one forward+backward), adam (autograd gradients), "
             "paper-fd (DWRR08 §6.3: gradient descent by forward differences, 1 + N_PARAMS renders a step)."
@@ -100,7 +100,7 @@ class FitSettings(Strict):
         "fixed",
         description=(
             "fixed: map_cell_mm as given (or its default); auto: each map's spacing chosen on the cube at the coarsest "
-            "level, the candidate with the least Cramér–Rao variance + C_p bias² (reconstruct/grid_choice.py), "
+            "level, the candidate with the least Cramér–Rao variance + C_p bias² (reconstruct/choice/grid_choice.py), "
             "starting from map_cell_mm; the evidence goes into fit.json. gn-hom only."
         ),
     )
@@ -110,7 +110,7 @@ class FitSettings(Strict):
             "The forward model: heterogeneous (the renderer, DWRR08 §4: every pixel lit by its neighbours), "
             "homogeneous (each pixel's own model under the window's light: no cross-talk, no render per step), or auto: "
             "the homogeneous fit first, kept where the renderer at its maps differs from it by at most half the cube's "
-            "noise, else the heterogeneous fit (reconstruct/fidelity.py; the evidence goes into fit.json)."
+            "noise, else the heterogeneous fit (reconstruct/choice/fidelity.py; the evidence goes into fit.json)."
         ),
     )
     absorbers: Literal["auto", "none"] = Field(
@@ -118,7 +118,7 @@ class FitSettings(Strict):
         description=(
             "auto: after the finest level, a grey interface absorbance (DWRR08 §4.2's thin layer) is fitted on the "
             "pixels whose residual stands out (hairs), kept per pixel where it lowers that pixel's chi2 by more than "
-            "ln n (BIC, the cube's noise known), and the maps refitted with it (reconstruct/absorbers.py); none: never. "
+            "ln n (BIC, the cube's noise known), and the maps refitted with it (reconstruct/diagnosis/absorbers.py); none: never. "
             "The renderer's fit only (the homogeneous model holds no neighbour to shade)."
         ),
     )

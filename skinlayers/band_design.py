@@ -13,7 +13,7 @@ parameters". Here the same search, stated:
   (R + 2G + B), averaged over the superpixels of a cube pixel. The flash's power is the current rig's,
   so every design is photographed with the same flash.
 - **What is fitted** (``band_jacobian``): the fit's band model, homogeneous skin per pixel
-  (``reconstruct/problem.py``: the multipole reflectance at each band's three nodes, weights 2/3, 1/6,
+  (``reconstruct/levels/problem.py``: the multipole reflectance at each band's three nodes, weights 2/3, 1/6,
   1/6, times the camera's exit factor), differentiated in log C_m, β_m, log C_he, log C_bc, log C_hd.
 - **The model's error** (``band_discrepancy``, on by default): what the fit's renderer misses of the
   skin it fits (variation within a pixel, the simulator's finer grid and quadrature), measured per filter
@@ -257,8 +257,8 @@ def prior_skins(samples: int = PRIOR_SAMPLES, seed: int = PRIOR_SEED) -> torch.T
 def band_jacobian(skins: torch.Tensor, filters: Sequence[Filter], view_angle_deg: float = 30.0) -> tuple[torch.Tensor, torch.Tensor]:
     """The fit's band reflectance ``(M, F)`` of each skin ``(M, 5)`` through each filter, seen at
     ``view_angle_deg``, and its derivative ``(M, F, 5)`` in log C_m, β_m, log C_he, log C_bc, log C_hd
-    (``reconstruct/problem.py``'s band model)."""
-    from .reconstruct.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
+    (``reconstruct/levels/problem.py``'s band model)."""
+    from .reconstruct.levels.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
 
     nodes = band_nodes(torch.tensor([f.centre_nm for f in filters], dtype=torch.float64),
                        torch.tensor([f.fwhm_nm for f in filters], dtype=torch.float64))  # (F, 3)
@@ -302,7 +302,7 @@ class FilterTerms:
     """Each filter's share of a set's bound on each skin of the prior: the Fisher information ``(F, M, 5, 5)``
     (J Jᵀ / σ², σ the calibrated reflectance's noise, and the model's spread beside it), and for the
     model's systematic error, the fit's normal matrix J Jᵀ ``(F, M, 5, 5)`` and J b ``(F, M, 5)`` (b the
-    error) — the fit weighs its bands alike (``reconstruct/problem.py``), so its bias is
+    error) — the fit weighs its bands alike (``reconstruct/levels/problem.py``), so its bias is
     (Σ J Jᵀ)⁻¹ Σ J b over the set's filters. None: the model's error left out."""
 
     information: torch.Tensor
@@ -413,7 +413,7 @@ class Criterion:
 
     def __init__(self, information: torch.Tensor | FilterTerms, shared: torch.Tensor, kind: str = "rig",
                  reference: Sequence[int] | None = None, candidates: int | None = None):
-        from .reconstruct.checks import MAP_TARGETS  # noqa: PLC0415
+        from .reconstruct.diagnosis.checks import MAP_TARGETS  # noqa: PLC0415
 
         if kind not in CRITERIA or (kind == "rig" and reference is None):
             raise ValueError(f"criterion {kind!r}: one of {CRITERIA}; 'rig' needs the reference set")

@@ -7,7 +7,7 @@ over its area, not the reflectance of its mean maps. Only a render shows it, so 
 measured (``measure_discrepancy``): the demo's scene rendered as the simulator renders it
 (``SimulatedBench.render_band``: the truth grid, each filter's full quadrature, box-averaged to the cube
 grid) against the fit's own renderer (``SkinRenderer`` with the default settings, the cube grid, the
-band's three nodes and weights, ``reconstruct/problem.py``) at the truth's maps box-averaged to the cube
+band's three nodes and weights, ``reconstruct/levels/problem.py``) at the truth's maps box-averaged to the cube
 grid; the rig's whole window, lit as the rig lights it, on a cube of ``cube_px``² pixels (the rig's own
 where it is smaller). Not on a patch of the rig's pixel size: the window's size changes the result while
 the pixel's does not (docs/band_design.md, "The model's error").
@@ -125,7 +125,7 @@ def _fit_render(maps, rig, filters) -> torch.Tensor:
     from .model.illumination import Light  # noqa: PLC0415
     from .model.renderer import SkinRenderer  # noqa: PLC0415
     from .model.settings import ModelSettings  # noqa: PLC0415
-    from .reconstruct.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
+    from .reconstruct.levels.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
 
     nodes = band_nodes(torch.tensor([f.centre_nm for f in filters], dtype=torch.float64),
                        torch.tensor([f.fwhm_nm for f in filters], dtype=torch.float64))  # (F, 3)

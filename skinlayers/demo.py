@@ -51,7 +51,7 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
 
     from .formats.exr import read_exr  # noqa: PLC0415
     from .model.maps_io import read_maps  # noqa: PLC0415
-    from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
+    from .reconstruct.diagnosis.checks import FLAG_BITS  # noqa: PLC0415
 
     truth = read_maps(session / "truth" / "maps.exr")
     fit = read_maps(reconstruction / "maps.exr")
@@ -81,7 +81,7 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
 def scored_pixels(flags):
     """The pixels a fit is scored on ``(H, W)`` bool, from its ``flags`` ``(H, W)``: visible, not flagged for a
     high residual (hairs and veins, which the fit leaves to the residual) nor as a hair's or its halo."""
-    from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
+    from .reconstruct.diagnosis.checks import FLAG_BITS  # noqa: PLC0415
 
     flags = flags.to("cpu").long()
     return (((flags >> FLAG_BITS["masked"]) & 1) == 0) & (((flags >> FLAG_BITS["high_residual"]) & 1) == 0) \

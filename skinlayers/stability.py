@@ -338,7 +338,7 @@ def _against_truth(fit, session: Path, truth_r: torch.Tensor, clean_cube: Path, 
     from .demo import map_errors, scored_pixels, sigma_coverage  # noqa: PLC0415
     from .formats.cube import read_cube  # noqa: PLC0415
     from .model.maps_io import read_maps  # noqa: PLC0415
-    from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
+    from .reconstruct.diagnosis.checks import FLAG_BITS  # noqa: PLC0415
 
     truth = read_maps(session / "truth" / "maps.exr")
     keep = scored_pixels(fit.flags.cpu())

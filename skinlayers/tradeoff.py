@@ -32,8 +32,8 @@ from typing import Optional
 import torch
 import typer
 
-from .reconstruct.checks import MAP_TARGETS
-from .reconstruct.first_order import FIRST_ORDER_CAP
+from .reconstruct.diagnosis.checks import MAP_TARGETS
+from .reconstruct.mapfit.first_order import FIRST_ORDER_CAP
 from .sweep import AnalysisResult, PeakMemory, SweepTable, analysis_device, echo_outputs, pareto_front, time_to_front
 from .formats.threads import THREADS_HELP, command_threads
 
@@ -68,7 +68,7 @@ OWN_REFERENCE = {"render": {"blur": "fft", "series_tolerance": 1e-5, "max_series
                             "border_mm": 8.0}, "dtype": "float64"}
 _ALL_PER_PIXEL = dict.fromkeys(MAPS, 0.0)
 #: DWRR08's fit ran 200–500 gradient steps (§6.3); first-order methods take up to FIRST_ORDER_CAP ×
-#: max_iterations steps (reconstruct/first_order.py), so the paper's scheme is capped at 300.
+#: max_iterations steps (reconstruct/mapfit/first_order.py), so the paper's scheme is capped at 300.
 PAPER_STEPS = 300
 #: --quick: the paper's scheme at its fewest steps (§6.3: 200), on the transport sessions only (each
 #: step costs 1 + N_PARAMS renders, so 300 steps are minutes a session: docs/tradeoff.md, "What is
@@ -369,7 +369,7 @@ class _Runner:
         if ref is None or ref.shape != fit.maps.shape:
             return {}
         from .demo import map_errors  # noqa: PLC0415
-        from .reconstruct.checks import FLAG_BITS  # noqa: PLC0415
+        from .reconstruct.diagnosis.checks import FLAG_BITS  # noqa: PLC0415
 
         visible = ((fit.flags.cpu() >> FLAG_BITS["masked"]) & 1) == 0
         errors = map_errors(ref, fit.maps, visible)

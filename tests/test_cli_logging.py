@@ -28,7 +28,7 @@ def test_the_flag_sets_the_toolkit_level(toolkit_logger, flags, level):
 
 
 def test_records_reach_stderr_once_and_only_when_asked(toolkit_logger, capsys):
-    fit_log = logging.getLogger("skinlayers.reconstruct.fit")
+    fit_log = logging.getLogger("skinlayers.reconstruct.mapfit.fit")
     show_logs(0)
     fit_log.info("level 1 of 3")
     assert "level 1 of 3" not in capsys.readouterr().err

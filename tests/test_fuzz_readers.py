@@ -32,7 +32,7 @@ from skinlayers.formats.manifest import read_manifest
 from skinlayers.model.maps_io import read_maps
 from skinlayers.model.settings import load_model_settings
 from skinlayers.reconstruct.settings import load_fit_settings
-from skinlayers.reconstruct.spectra_io import read_spectra_csv
+from skinlayers.reconstruct.spectrum.spectra_io import read_spectra_csv
 
 FUZZ_EXAMPLES = int(os.environ.get("SKINLAYERS_FUZZ_EXAMPLES", "15"))
 #: A case may take at most this long (ms): a reader that hangs fails here.

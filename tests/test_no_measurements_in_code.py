@@ -60,7 +60,7 @@ ALLOWLIST = {
         "a tolerance setting (1/32 stop) and its arithmetic, not a result",
     ("calibration/raw.py", "**Superpixel.**"):
         "512 → 256 is the window's resampling (image sizes), not a before/after result",
-    ("reconstruct/unknowns.py", "Parameters. Each map"):
+    ("reconstruct/levels/unknowns.py", "Parameters. Each map"):
         "the reparameterisation's arithmetic (C_m's range mapped onto x), not a result",
     ("reconstruct/settings.py", "Node spacing (mm) per map"):
         "the defaults themselves, pointing to the docs that hold their measurements",

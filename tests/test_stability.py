@@ -15,7 +15,7 @@ import torch
 from skinlayers.formats.cube import Cube, CubeHeader
 from skinlayers.stability import (COLUMNS, CONDITIONS, METHODS, RESIDUAL_AT_NOISE, SIGMA_COVER, StabilityPlan, _perturb_cube,
                                   cell_verdict, make_plan, run_stability, summarise)
-from skinlayers.reconstruct.checks import (MAP_TARGETS, RESIDUAL_NOISE_LIMIT, SMOOTH_BAND_RATIO, precision_notes, residual_notes,
+from skinlayers.reconstruct.diagnosis.checks import (MAP_TARGETS, RESIDUAL_NOISE_LIMIT, SMOOTH_BAND_RATIO, precision_notes, residual_notes,
                                           smooth_band_notes)
 
 WAVELENGTHS_NM = (430.0, 460.0, 490.0, 520.0, 550.0, 580.0, 610.0, 640.0, 670.0)
@@ -169,7 +169,7 @@ def test_every_failing_cell_of_a_small_matrix_is_told(small):
 def test_with_the_fits_checks_switched_off_a_failure_goes_silent(small, tmp_path, monkeypatch):
     out, _, _ = small
     shutil.copytree(out / "sessions", tmp_path / "sessions")  # the same session, not simulated again
-    from skinlayers.reconstruct import checks
+    from skinlayers.reconstruct.diagnosis import checks
 
     monkeypatch.setattr(checks.DataChecks, "warn", lambda self, lines: None)
     result = run_stability(tmp_path, plan=StabilityPlan({"misregistration": (2.0,)}, ["gn-hom"], 16, seed=5), say=lambda s: None)

@@ -30,7 +30,7 @@ def refit(folder: Path, settings, name: str = "reconstruction"):
     import torch
 
     from skinlayers.demo import accuracy_against_truth
-    from skinlayers.reconstruct.outputs import reconstruct_cube
+    from skinlayers.reconstruct.results.outputs import reconstruct_cube
 
     torch.set_num_threads(2)
     fit, _ = reconstruct_cube(folder / "calibrated" / "cube.exr", folder / name, settings, device="cpu", force=True)

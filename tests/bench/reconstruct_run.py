@@ -49,7 +49,7 @@ def cube_for(cfg: dict):
 
 def main(cfg: dict) -> dict:
     from skinlayers.model import PARAMETER_NAMES
-    from skinlayers.reconstruct.fit import fit_cube
+    from skinlayers.reconstruct.mapfit.fit import fit_cube
     from skinlayers.reconstruct.settings import FitSettings
 
     torch.set_num_threads(int(cfg.get("threads", torch.get_num_threads())))

@@ -98,7 +98,7 @@ def test_batch_throughput_against_workers():
         _fresh(sessions)
         start = time.perf_counter()
         with local_cluster(workers) as cluster, Client(cluster) as client:
-            client.run(lambda: __import__("skinlayers.reconstruct.fit"))  # the workers' first imports, as a study pays once
+            client.run(lambda: __import__("skinlayers.reconstruct.mapfit.fit"))  # the workers' first imports, as a study pays once
             startup = time.perf_counter() - start
             start = time.perf_counter()
             result = run_batch(sessions, options, out_dir() / "batch_study", client=client)

@@ -1,4 +1,4 @@
-"""The forward model chosen per cube (``forward: auto``, ``reconstruct/fidelity.py``) against the
+"""The forward model chosen per cube (``forward: auto``, ``reconstruct/choice/fidelity.py``) against the
 renderer's fit, side by side in one run (on demand:
 ``pytest -m bench tests/bench/test_bench_forward_choice.py -s``).
 
@@ -48,7 +48,7 @@ def _errors(fit, syn) -> dict:
 
 def _side_by_side(scenes: dict[str, dict]) -> list[dict]:
     """Every scene fitted by the renderer's fit and by ``auto``, one after the other in this process."""
-    from skinlayers.reconstruct.fit import fit_cube
+    from skinlayers.reconstruct.mapfit.fit import fit_cube
     from skinlayers.reconstruct.settings import FitSettings
 
     torch.set_num_threads(2)

@@ -4,7 +4,7 @@
 The NIST forearms (100 spectra, 400–700 nm) tiled into CSV files of 1,000 … 10,000 columns, each fitted
 by the command in its own process, one thread: wall time and the process's peak resident memory, and
 the exponent k of time ∝ count^k fitted over them. Writes ``many_spectra.csv`` to ``bench_results/``
-(``SKINLAYERS_BENCH_DIR``). The fit runs in chunks of spectra (``reconstruct/spectrum_fit.py``), so
+(``SKINLAYERS_BENCH_DIR``). The fit runs in chunks of spectra (``reconstruct/spectrum/spectrum_fit.py``), so
 memory should stay flat and time linear; the assertion is on memory only (times are read, not tested).
 """
 

@@ -72,7 +72,7 @@ def _errors(fit, session: Path, cube) -> dict:
     from skinlayers.model import PARAMETER_NAMES
     from skinlayers.formats.exr import read_exr
     from skinlayers.model.maps_io import read_maps
-    from skinlayers.reconstruct.checks import FLAG_BITS
+    from skinlayers.reconstruct.diagnosis.checks import FLAG_BITS
 
     truth = read_maps(session / "truth" / "maps.exr")
     channels, _ = read_exr(session / "truth" / "reflectance.exr")
@@ -90,7 +90,7 @@ def _errors(fit, session: Path, cube) -> dict:
 
 def test_node_spacing_against_accuracy_and_time():
     from skinlayers.formats.cube import read_cube
-    from skinlayers.reconstruct.fit import fit_cube
+    from skinlayers.reconstruct.mapfit.fit import fit_cube
     from skinlayers.reconstruct.settings import FitSettings
 
     size = int(os.environ.get("SKINLAYERS_BENCH_GRID_SIZE", "64"))
@@ -143,7 +143,7 @@ def test_time_against_session_size():
     ``SKINLAYERS_BENCH_512=1``): CPU seconds (one thread), iterations per level, accuracy. Writes
     ``fit_sizes.csv``."""
     from skinlayers.formats.cube import read_cube
-    from skinlayers.reconstruct.fit import fit_cube
+    from skinlayers.reconstruct.mapfit.fit import fit_cube
     from skinlayers.reconstruct.settings import FitSettings
 
     torch.set_num_threads(1)

@@ -27,7 +27,7 @@ from skinlayers.model import PARAMETER_NAMES, TABLE2, ColourConverter, ModelSett
 from skinlayers.model.colour import delta_e_2000
 from skinlayers.model.tables import build_profile_tables
 from skinlayers.reconstruct import fit_spectra
-from skinlayers.reconstruct.spectra_io import read_spectra_csv
+from skinlayers.reconstruct.spectrum.spectra_io import read_spectra_csv
 
 from bench_io import out_dir, write_csv
 

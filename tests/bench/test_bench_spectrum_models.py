@@ -23,8 +23,8 @@ import torch
 from skinlayers.model import ModelSettings, SkinModel, SkinParams
 from skinlayers.model.point_model import point_reflectance
 from skinlayers.reconstruct import fit_spectra, select_spectrum_models
-from skinlayers.reconstruct.spectra_io import read_spectra_csv
-from skinlayers.reconstruct.spectrum_models import candidate_label
+from skinlayers.reconstruct.spectrum.spectra_io import read_spectra_csv
+from skinlayers.reconstruct.spectrum.spectrum_models import candidate_label
 
 from bench_io import write_csv
 

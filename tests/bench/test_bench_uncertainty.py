@@ -35,8 +35,8 @@ def _coverage(folder: Path, seed: int) -> list[dict]:
     from skinlayers.formats.exr import read_exr
     from skinlayers.model import PARAMETER_NAMES
     from skinlayers.model.maps_io import read_maps
-    from skinlayers.reconstruct.checks import FLAG_BITS
-    from skinlayers.reconstruct.uncertainty import MODEL_FLOOR, MODEL_FLOOR_ABSOLUTE, floor_for_coverage
+    from skinlayers.reconstruct.diagnosis.checks import FLAG_BITS
+    from skinlayers.reconstruct.diagnosis.uncertainty import MODEL_FLOOR, MODEL_FLOOR_ABSOLUTE, floor_for_coverage
 
     truth = read_maps(folder / "session" / "truth" / "maps.exr")
     fit = read_maps(folder / "reconstruction" / "maps.exr")

@@ -154,10 +154,10 @@ def test_the_rigs_filter_widths_reach_the_fit(session_copy, tmp_path):
 
     from skinlayers.formats.manifest import read_manifest, write_manifest
     from skinlayers.model.renderer import SkinRenderer
-    from skinlayers.reconstruct.fit import band_fwhm_of, view_angle_of
-    from skinlayers.reconstruct.problem import LevelProblem
+    from skinlayers.reconstruct.mapfit.fit import band_fwhm_of, view_angle_of
+    from skinlayers.reconstruct.levels.problem import LevelProblem
     from skinlayers.reconstruct.settings import FitSettings
-    from skinlayers.reconstruct.unknowns import Level
+    from skinlayers.reconstruct.levels.unknowns import Level
 
     manifest = read_manifest(session_copy.path)
     rig = {**manifest.rig, "bands": [{**b, "fwhm_nm": 12.0} for b in manifest.rig["bands"]], "camera": {**manifest.rig["camera"], "angle_deg": 25.0}}

@@ -69,7 +69,7 @@ def test_every_parts_errors_share_the_base():
     from skinlayers.model import SettingsError as ModelSettingsError
     from skinlayers.model.maps import MapsError
     from skinlayers.reconstruct import FitSettingsError
-    from skinlayers.reconstruct.spectra_io import SpectraFileError
+    from skinlayers.reconstruct.spectrum.spectra_io import SpectraFileError
 
     for error in (RigError, SceneError, SimulationError, SettingsFileError, ModelSettingsError, FitSettingsError):
         assert issubclass(error, SettingsError), error

@@ -58,7 +58,7 @@ def small_cube(synthetic):
 
 @pytest.fixture(scope="session")
 def small_fit(small_cube):
-    from skinlayers.reconstruct.fit import fit_cube
+    from skinlayers.reconstruct.mapfit.fit import fit_cube
     from skinlayers.reconstruct.settings import FitSettings
 
     return fit_cube(small_cube.cube, FitSettings(**SMALL_FIT))

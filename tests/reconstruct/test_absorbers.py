@@ -1,5 +1,5 @@
 """The grey interface absorbance the fit can add where the residual asks (``absorbers: auto``,
-``reconstruct/absorbers.py``): it lands on the hairs, nowhere it is not asked for, and reaches the maps
+``reconstruct/diagnosis/absorbers.py``): it lands on the hairs, nowhere it is not asked for, and reaches the maps
 file. (Off by default: on the demo's scene it has not yet made the maps better, docs/reconstruct.md.)"""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 
 from skinlayers.model.maps_io import read_maps
-from skinlayers.reconstruct.fit import fit_cube
-from skinlayers.reconstruct.outputs import fit_summary, write_outputs
+from skinlayers.reconstruct.mapfit.fit import fit_cube
+from skinlayers.reconstruct.results.outputs import fit_summary, write_outputs
 from skinlayers.reconstruct.settings import FitSettings
 
 SETTINGS = FitSettings(max_iterations=15, map_cell_mm={"C_bc": 0.0}, absorbers="auto")

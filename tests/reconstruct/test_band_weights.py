@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from skinlayers.formats.cube import Cube
-from skinlayers.reconstruct.fit import NOISE_WEIGHT_MAX, band_weights, fit_cube
+from skinlayers.reconstruct.mapfit.fit import NOISE_WEIGHT_MAX, band_weights, fit_cube
 from skinlayers.reconstruct.settings import BAND_WEIGHTS_BY_PROFILES, FitSettings
 
 #: σ per band (reflectance units) of the test's noise: the rig's pattern, exaggerated

@@ -1,4 +1,4 @@
-"""The forward model chosen per cube (``forward: auto``, ``reconstruct/fidelity.py``): the homogeneous
+"""The forward model chosen per cube (``forward: auto``, ``reconstruct/choice/fidelity.py``): the homogeneous
 model under the window's light against the renderer, a flat patch fitted without the renderer at no
 loss (as uniform skin: every map one value, found so by the structure test), and a scene with features
 handed to the renderer unchanged."""
@@ -10,17 +10,17 @@ import torch
 
 from skinlayers.model import PARAMETER_NAMES
 from skinlayers.model.renderer import SkinRenderer
-from skinlayers.reconstruct.checks import check_cube
-from skinlayers.reconstruct.fidelity import (
+from skinlayers.reconstruct.diagnosis.checks import check_cube
+from skinlayers.reconstruct.choice.fidelity import (
     CONSTANT_R, CROSSTALK_LIMIT, PATCH_MM, spatial_structure, uniform_light_factor, window_light_factor,
 )
-from skinlayers.reconstruct.fit import band_fwhm_of, fit_cube
-from skinlayers.reconstruct.gauss_newton import gn_homogeneous
-from skinlayers.reconstruct.grids import MapLayout
-from skinlayers.reconstruct.problem import HomogeneousProblem, LevelProblem
+from skinlayers.reconstruct.mapfit.fit import band_fwhm_of, fit_cube
+from skinlayers.reconstruct.mapfit.gauss_newton import gn_homogeneous
+from skinlayers.reconstruct.levels.grids import MapLayout
+from skinlayers.reconstruct.levels.problem import HomogeneousProblem, LevelProblem
 from skinlayers.reconstruct.settings import FitSettings
-from skinlayers.reconstruct.uniform import fit_uniform
-from skinlayers.reconstruct.unknowns import Level, from_params, pyramid
+from skinlayers.reconstruct.mapfit.uniform import fit_uniform
+from skinlayers.reconstruct.levels.unknowns import Level, from_params, pyramid
 
 
 def map_errors(fit, synthetic_cube) -> dict[str, float]:
@@ -76,7 +76,7 @@ def test_flat_patch_is_fitted_without_the_renderer(flat_cube, monkeypatch):
     10%. Measured on this cube: every map better (C_hd 5.8% against 15%: the renderer's fit spends
     dermal blood on noise it reads as detail). The renderer's per-pixel start is never made for it
     (the homogeneous fit starts from the mean spectrum), and is made once for the renderer's fit."""
-    import skinlayers.reconstruct.fit as fit_module
+    import skinlayers.reconstruct.mapfit.fit as fit_module
 
     made = []
     counted = {name: (lambda *a, start=start, **k: made.append(1) or start(*a, **k)) for name, start in fit_module.STARTS.items()}
@@ -191,7 +191,7 @@ def test_a_map_at_its_bound_is_reported_undetermined(small_fit, small_fit_settin
     import dataclasses
 
     from skinlayers.model.maps import SkinMaps
-    from skinlayers.reconstruct.outputs import fit_summary
+    from skinlayers.reconstruct.results.outputs import fit_summary
 
     settings = FitSettings(**small_fit_settings)
     summary = fit_summary(small_fit, settings)

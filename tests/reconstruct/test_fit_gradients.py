@@ -10,9 +10,9 @@ import torch
 
 from skinlayers.model import N_PARAMS, PARAMETER_NAMES, TABLE2
 from skinlayers.model.renderer import SkinRenderer
-from skinlayers.reconstruct.gauss_newton import solve_step
-from skinlayers.reconstruct.problem import LevelProblem
-from skinlayers.reconstruct.unknowns import Level, from_params
+from skinlayers.reconstruct.mapfit.gauss_newton import solve_step
+from skinlayers.reconstruct.levels.problem import LevelProblem
+from skinlayers.reconstruct.levels.unknowns import Level, from_params
 
 WL = torch.tensor([450.0, 550.0, 650.0], dtype=torch.float64)
 

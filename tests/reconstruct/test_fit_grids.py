@@ -1,4 +1,4 @@
-"""Maps on their own node grids (``reconstruct/grids.py``) and the Schur-complement step (``schur.py``).
+"""Maps on their own node grids (``reconstruct/levels/grids.py``) and the Schur-complement step (``schur.py``).
 
 References: ``F.interpolate`` for the bilinear operator; the dense least-squares (Gauss–Newton) step
 and the dense inverse Fisher information over every unknown — fine maps per pixel, nodes, scale —
@@ -14,8 +14,8 @@ import torch
 import torch.nn.functional as F
 
 from skinlayers.model import PARAMETER_NAMES
-from skinlayers.reconstruct.grids import MapGrid, MapLayout, node_count
-from skinlayers.reconstruct.schur import marginal_variance, solve_split_step
+from skinlayers.reconstruct.levels.grids import MapGrid, MapLayout, node_count
+from skinlayers.reconstruct.levels.schur import marginal_variance, solve_split_step
 from skinlayers.reconstruct.settings import DEFAULT_MAP_CELL_MM, FitSettings
 
 
@@ -161,7 +161,7 @@ def test_a_fit_with_every_map_on_nodes_runs_and_fits(small_cube):
     per-pixel block (once a crash in the block factor and the step's index: the step itself is
     checked against the dense solve above); the fit runs and lowers the loss. How well such a layout
     fits is the layout's question, not the solver's (melanin's freckles do not fit 1.5-mm nodes)."""
-    from skinlayers.reconstruct.fit import fit_cube
+    from skinlayers.reconstruct.mapfit.fit import fit_cube
 
     cells = dict.fromkeys(PARAMETER_NAMES, 1.5) | {"C_bc": 100.0}
     fit = fit_cube(small_cube.cube, FitSettings(map_cell_mm=cells, max_iterations=4))

@@ -16,8 +16,8 @@ import torch
 from dataclasses import replace
 
 from skinlayers.model import PARAMETER_BOUNDS, PARAMETER_NAMES
-from skinlayers.reconstruct.checks import FLAG_BITS, MAP_TARGETS
-from skinlayers.reconstruct.fit import fit_cube
+from skinlayers.reconstruct.diagnosis.checks import FLAG_BITS, MAP_TARGETS
+from skinlayers.reconstruct.mapfit.fit import fit_cube
 from skinlayers.reconstruct.settings import FitSettings
 
 

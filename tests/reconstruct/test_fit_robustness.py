@@ -10,9 +10,9 @@ import torch
 
 from skinlayers.formats.cube import Cube
 from skinlayers.model import PARAMETER_NAMES
-from skinlayers.reconstruct.checks import FLAG_BITS
-from skinlayers.reconstruct.fit import fit_cube
-from skinlayers.reconstruct.outputs import fit_summary
+from skinlayers.reconstruct.diagnosis.checks import FLAG_BITS
+from skinlayers.reconstruct.mapfit.fit import fit_cube
+from skinlayers.reconstruct.results.outputs import fit_summary
 from skinlayers.reconstruct.settings import FitSettings
 
 # carotene per pixel, as for the small cube of the same noise (conftest.SMALL_FIT)
@@ -100,7 +100,7 @@ def test_empty_mask_is_refused(small_cube):
 def test_a_band_read_dark_is_reported_not_fitted_silently(small_cube, small_fit, small_fit_settings):
     """A green band 8% too dark (a wrong Spectralon value at that band): no maps match it, and the fit
     says so, naming that band first, in the notes and in fit.json; the clean cube raises nothing."""
-    from skinlayers.reconstruct.checks import BAND_BIAS_LIMIT
+    from skinlayers.reconstruct.diagnosis.checks import BAND_BIAS_LIMIT
 
     wl = small_cube.cube.wavelength_nm.tolist()
     j = wl.index(550.0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from skinlayers.model import PARAMETER_BOUNDS, PARAMETER_NAMES
-from skinlayers.reconstruct.unknowns import (
+from skinlayers.reconstruct.levels.unknowns import (
     X_LIMIT,
     dparams_dx,
     extend,

@@ -1,4 +1,4 @@
-"""Each map's grid from the cube's information (``reconstruct/grid_choice.py``): the Fourier-domain
+"""Each map's grid from the cube's information (``reconstruct/choice/grid_choice.py``): the Fourier-domain
 Cramér–Rao bound against the dense Fisher matrix it stands for, the noise estimator against noise of a
 known σ, and the C_p bias against maps of known detail."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from skinlayers.reconstruct.grid_choice import PATCH, PER_PIXEL, band_noise, crb_pixel_variance, smoothing_bias
-from skinlayers.reconstruct.grids import MapGrid
+from skinlayers.reconstruct.choice.grid_choice import PATCH, PER_PIXEL, band_noise, crb_pixel_variance, smoothing_bias
+from skinlayers.reconstruct.levels.grids import MapGrid
 
 
 def _basis(spacing, m: int) -> list[torch.Tensor]:
@@ -110,7 +110,7 @@ def test_bias_of_a_map_the_grid_holds_is_zero_and_of_detail_is_its_power():
 
 
 def test_auto_grids_fit_says_what_it_considered_and_takes_the_least_risk(small_cube):
-    from skinlayers.reconstruct.fit import fit_cube
+    from skinlayers.reconstruct.mapfit.fit import fit_cube
     from skinlayers.reconstruct.settings import FitSettings
 
     fit = fit_cube(small_cube.cube, FitSettings(map_grids="auto"))

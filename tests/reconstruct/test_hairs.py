@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from skinlayers.reconstruct.hairs import HALO_MM, find_hairs, hair_notes
+from skinlayers.reconstruct.diagnosis.hairs import HALO_MM, find_hairs, hair_notes
 
 WAVELENGTHS_NM = [430.0, 460.0, 490.0, 520.0, 550.0, 580.0, 610.0, 640.0, 670.0]
 MM_PER_PIXEL = 0.03  # a 256² cube over 7.5 mm
@@ -61,7 +61,7 @@ def test_outside_the_mask_nothing_is_found():
 
 def test_sigma_is_widened_by_the_measured_factors_on_and_away_from_hairs():
     from skinlayers.model import PARAMETER_NAMES
-    from skinlayers.reconstruct.hairs import HAIR_SIGMA_AWAY, HAIR_SIGMA_ON, hair_widening
+    from skinlayers.reconstruct.diagnosis.hairs import HAIR_SIGMA_AWAY, HAIR_SIGMA_ON, hair_widening
 
     flagged = torch.tensor([True, False, True])
     factors = hair_widening(flagged, PARAMETER_NAMES)

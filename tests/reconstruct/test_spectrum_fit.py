@@ -14,9 +14,9 @@ import torch
 from skinlayers.model import N_PARAMS, PARAMETER_BOUNDS, PARAMETER_NAMES, SkinModel, SkinParams
 from skinlayers.model.point_model import constant_defaults, point_reflectance
 from skinlayers.reconstruct import fit_spectra
-from skinlayers.reconstruct.spectrum_models import FIXED_MODELS, SpectrumModel, load_spectrum_model, select_spectrum_models
+from skinlayers.reconstruct.spectrum.spectrum_models import FIXED_MODELS, SpectrumModel, load_spectrum_model, select_spectrum_models
 from skinlayers.formats.errors import InputError
-from skinlayers.reconstruct.spectra_io import SpectraFileError, read_spectra_csv
+from skinlayers.reconstruct.spectrum.spectra_io import SpectraFileError, read_spectra_csv
 
 NIST = Path(__file__).resolve().parents[1] / "data" / "nist_skin_reflectance_forearm_avg_370-830nm.csv"
 NOISE = 0.003

@@ -1,4 +1,4 @@
-"""The terms that widen σ beyond the noise's share (``reconstruct/uncertainty.py``, ``schur.marginal_variance``
+"""The terms that widen σ beyond the noise's share (``reconstruct/diagnosis/uncertainty.py``, ``schur.marginal_variance``
 with clusters), each against a case whose answer is known by construction."""
 
 from __future__ import annotations
@@ -8,12 +8,12 @@ import torch
 
 from skinlayers.model import N_PARAMS, PARAMETER_NAMES
 from skinlayers.model.renderer import SkinRenderer
-from skinlayers.reconstruct.gauss_newton import curvature_and_columns
-from skinlayers.reconstruct.grids import MapLayout
-from skinlayers.reconstruct.problem import LevelProblem
-from skinlayers.reconstruct.schur import marginal_variance
-from skinlayers.reconstruct.uncertainty import crosstalk_ratio, subnode_sd
-from skinlayers.reconstruct.unknowns import Level, from_params
+from skinlayers.reconstruct.mapfit.gauss_newton import curvature_and_columns
+from skinlayers.reconstruct.levels.grids import MapLayout
+from skinlayers.reconstruct.levels.problem import LevelProblem
+from skinlayers.reconstruct.levels.schur import marginal_variance
+from skinlayers.reconstruct.diagnosis.uncertainty import crosstalk_ratio, subnode_sd
+from skinlayers.reconstruct.levels.unknowns import Level, from_params
 
 CELLS = {"C_m": 0.0, "beta_m": 1.5, "C_he": 0.0, "C_bc": 100.0, "C_hd": 0.375}
 
@@ -132,7 +132,7 @@ def test_marginal_variance_is_the_dense_inverse_fisher_information(cells):
 def test_the_floor_rule_covers_the_share_it_is_set_for():
     """``floor_for_coverage``: the floor it returns, added in quadrature to σ's data terms, puts the share of
     pixels within ±2σ it was asked for; with no data terms it is the error's quantile over twice the scale."""
-    from skinlayers.reconstruct.uncertainty import floor_for_coverage
+    from skinlayers.reconstruct.diagnosis.uncertainty import floor_for_coverage
 
     g = torch.Generator().manual_seed(3)
     error = torch.rand(4000, generator=g, dtype=torch.float64) * 0.2

@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..formats.cube import Cube
-from ..formats.errors import InputError
-from ..model import N_PARAMS
+from ...formats.cube import Cube
+from ...formats.errors import InputError
+from ...model import N_PARAMS
 
 __all__ = ["BAND_BIAS_LIMIT", "FLAG_BITS", "MAP_TARGETS", "MIN_BANDS", "RESIDUAL_NOISE_LIMIT", "SMOOTH_BAND_RATIO", "DataChecks",
            "band_bias", "band_bias_notes", "check_cube", "flag_value", "precision_notes", "residual_notes", "smooth_band_notes"]
@@ -43,13 +43,13 @@ FLAG_BITS = {
 #: average over the fitted pixels, is one no maps can match: its calibration (the Spectralon's certified
 #: value, the gray card, the filter) or the band's frames are suspect. The limit lies well above what clean
 #: cubes leave and below what a miscalibrated green band leaves (docs/stability.md, "From
-#: reconstruct/checks.py"). A blue band's error the maps absorb (melanin), leaving no trace here.
+#: reconstruct/diagnosis/checks.py"). A blue band's error the maps absorb (melanin), leaving no trace here.
 BAND_BIAS_LIMIT = 0.02
 
 #: The residual's RMS over the cube's own noise (``grid_choice.band_noise``, Immerkær's estimate from the
 #: cube itself; the same pixels and used bands) above which the model does not explain the data. The
 #: limit allows for the estimate's own error above a clean fit's residual and stays below what
-#: misregistered bands leave (docs/stability.md, "From reconstruct/checks.py").
+#: misregistered bands leave (docs/stability.md, "From reconstruct/diagnosis/checks.py").
 RESIDUAL_NOISE_LIMIT = 1.5
 
 #: A band whose own noise, relative to its reflectance, is below this share of its neighbours' (their
@@ -57,7 +57,7 @@ RESIDUAL_NOISE_LIMIT = 1.5
 #: frame, it was out of focus, or it was resampled. Its edges then differ from the other bands' and the
 #: maps take the difference, often below the residual limit. The ratio lies below every band of clean
 #: cubes and above a band blurred by a few pixels of motion (docs/stability.md, "From
-#: reconstruct/checks.py").
+#: reconstruct/diagnosis/checks.py").
 SMOOTH_BAND_RATIO = 0.5
 
 #: What the maps are meant to be read to: the median error per map (relative; β_m absolute) the demo and

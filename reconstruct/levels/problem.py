@@ -37,11 +37,11 @@ from dataclasses import dataclass, field
 import torch
 import torch.autograd.forward_ad as fwAD
 
-from ..model import SkinParams
-from ..model.illumination import Light
-from ..model.maps import SkinMaps
-from ..model.radiometry import exit_factor
-from ..model.renderer import SkinRenderer
+from ...model import SkinParams
+from ...model.illumination import Light
+from ...model.maps import SkinMaps
+from ...model.radiometry import exit_factor
+from ...model.renderer import SkinRenderer
 from .grids import MapLayout
 from .least_squares import reverse_jacobian
 from .unknowns import Level, extend, extension_index, params_of_rows, to_params

@@ -41,9 +41,9 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
-from ..model import N_PARAMS, PARAMETER_NAMES
-from .grids import _MIN_CELL_PX, MapGrid, node_count
-from .problem import LevelProblem
+from ...model import N_PARAMS, PARAMETER_NAMES
+from ..levels.grids import _MIN_CELL_PX, MapGrid, node_count
+from ..levels.problem import LevelProblem
 
 __all__ = [
     "GridChoice", "PATCH", "PER_PIXEL", "band_noise", "choose_map_grids", "crb_pixel_variance", "sensitivity_kernels",
@@ -237,7 +237,7 @@ class GridChoice:
 
     def as_dict(self) -> dict:
         return {
-            "rule": "each map's spacing minimises Cramér–Rao variance + Mallows C_p bias² (reconstruct/grid_choice.py)",
+            "rule": "each map's spacing minimises Cramér–Rao variance + Mallows C_p bias² (reconstruct/choice/grid_choice.py)",
             "cells_mm": self.cells_mm, "candidates": self.candidates, "noise_per_band": self.noise,
             "level_shape": list(self.level_shape), "level_mm_per_pixel": self.level_mm_per_pixel, "analysis_px": self.analysis_px,
         }

@@ -29,11 +29,11 @@ import time
 
 import torch
 
-from ..model import N_PARAMS
-from .least_squares import LAMBDA0, LAMBDA_MAX, LAMBDA_MIN, block_factor, block_solve, next_damping, predicted_decrease
-from .problem import Evaluation, HomogeneousProblem, LevelProblem, OptimResult
-from .schur import solve_split_step
-from .unknowns import X_LIMIT
+from ...model import N_PARAMS
+from ..levels.least_squares import LAMBDA0, LAMBDA_MAX, LAMBDA_MIN, block_factor, block_solve, next_damping, predicted_decrease
+from ..levels.problem import Evaluation, HomogeneousProblem, LevelProblem, OptimResult
+from ..levels.schur import solve_split_step
+from ..levels.unknowns import X_LIMIT
 
 __all__ = ["curvature_and_columns", "gauss_newton", "gn_exact", "gn_homogeneous", "level_step", "solve_step"]
 

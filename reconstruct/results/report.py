@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..model import PARAMETER_NAMES
-from .checks import FLAG_BITS
-from .fit import MapFit
+from ...model import PARAMETER_NAMES
+from ..diagnosis.checks import FLAG_BITS
+from ..mapfit.fit import MapFit
 
 __all__ = ["plot_report"]
 
@@ -72,7 +72,7 @@ def plot_report(fit: MapFit, measured: torch.Tensor, path: str | Path) -> Path:
     axes[3, 6].set_yticks([])
     title = (f"scale {fit.scale:.3f} · residual RMS {float(fit.residual_rms[~torch.from_numpy(masked)].pow(2).mean().sqrt()):.4f} · "
              f"{fit.cpu_s:.1f} s CPU")
-    if fit.forward_choice:  # the forward model and why (reconstruct/fidelity.py)
+    if fit.forward_choice:  # the forward model and why (reconstruct/choice/fidelity.py)
         title += f"\nforward model: {fit.forward_choice['chosen']} — {fit.forward_choice['reason']}"
     fig.suptitle(title, fontsize=8)
     fig.tight_layout()

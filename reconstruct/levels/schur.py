@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import torch
 
-from ..model import N_PARAMS
+from ...model import N_PARAMS
 from .grids import MapLayout
 from .least_squares import block_factor, block_solve
 

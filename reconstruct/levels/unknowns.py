@@ -28,8 +28,8 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from ..formats.errors import InputError
-from ..model import N_PARAMS, SkinParams, parameter_bounds
+from ...formats.errors import InputError
+from ...model import N_PARAMS, SkinParams, parameter_bounds
 
 __all__ = [
     "X_LIMIT", "X_START_LIMIT", "Level", "bounds", "dparams_dx", "extend", "extension_index", "from_params", "near_bound",

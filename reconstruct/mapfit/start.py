@@ -5,7 +5,7 @@
 ``homogeneous``: the point-spectrum fit (``spectrum_fit.fit_spectra`` with ``method="tables"``:
 batched projected Levenberg–Marquardt on the homogeneous model's tabulated totals, four starts per
 spectrum; faster than the exact fit at the render bands and hardly worse: docs/model.md, "From
-reconstruct/start.py") of every loss pixel's
+reconstruct/mapfit/start.py") of every loss pixel's
 spectrum, divided by the camera's exit factor (the cube holds reflectance factors at the view angle,
 the homogeneous model diffuse reflectance), ignoring the cross-talk between pixels and the window's
 dark edges. It runs on the coarsest level only, where pixels are few; finer levels start from the
@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import torch
 
-from ..model import N_PARAMS, PARAMETER_NAMES, SkinModel
-from .problem import LevelProblem
-from .spectrum_fit import PAPER_START, fit_spectra
-from .unknowns import X_START_LIMIT, extend, from_params
+from ...model import N_PARAMS, PARAMETER_NAMES, SkinModel
+from ..levels.problem import LevelProblem
+from ..spectrum.spectrum_fit import PAPER_START, fit_spectra
+from ..levels.unknowns import X_START_LIMIT, extend, from_params
 
 __all__ = ["STARTS", "homogeneous_start", "mean_spectrum_start", "paper_start"]
 

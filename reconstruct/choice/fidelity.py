@@ -24,10 +24,10 @@ from dataclasses import asdict, dataclass, field
 
 import torch
 
-from ..model import N_PARAMS, PARAMETER_NAMES, SkinParams
-from .grids import MapLayout
-from .problem import Evaluation, HomogeneousProblem, LevelProblem
-from .unknowns import to_params
+from ...model import N_PARAMS, PARAMETER_NAMES, SkinParams
+from ..levels.grids import MapLayout
+from ..levels.problem import Evaluation, HomogeneousProblem, LevelProblem
+from ..levels.unknowns import to_params
 
 __all__ = ["CONSTANT_R", "CROSSTALK_LIMIT", "CrossTalkCheck", "ForwardChoice", "crosstalk_check", "spatial_structure",
            "uniform_light_factor", "window_light_factor"]
@@ -128,7 +128,7 @@ def spatial_structure(layout: MapLayout, x: torch.Tensor, mask: torch.Tensor, mm
 
     Per-pixel values count from ``EDGE_MM`` inside the window's edges: nearer, the light factor of the
     skin's median is the model's own approximation (off for other skin), and the maps take it up as a
-    ring (docs/reconstruct.md, "From reconstruct/fidelity.py")."""
+    ring (docs/reconstruct.md, "From reconstruct/choice/fidelity.py")."""
     inner = int(round(EDGE_MM / mm_per_pixel))
     interior = torch.zeros_like(mask)
     interior[inner: mask.shape[0] - inner, inner: mask.shape[1] - inner] = True

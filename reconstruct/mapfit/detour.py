@@ -10,12 +10,12 @@ from typing import Protocol
 import torch
 import torch.nn.functional as F
 
-from .fidelity import PATCH_MM, ForwardChoice, crosstalk_check, spatial_structure, uniform_light_factor, window_light_factor
+from ..choice.fidelity import PATCH_MM, ForwardChoice, crosstalk_check, spatial_structure, uniform_light_factor, window_light_factor
 from .optimizers import OptimResult
-from .problem import LevelProblem
-from .settings import FitSettings
+from ..levels.problem import LevelProblem
+from ..settings import FitSettings
 from .uniform import fit_uniform
-from .unknowns import extend, upsample
+from ..levels.unknowns import extend, upsample
 
 __all__ = ["LIGHT_FACTOR_PASSES", "FitRun", "homogeneous_fit"]
 
@@ -26,7 +26,7 @@ __all__ = ["LIGHT_FACTOR_PASSES", "FitRun", "homogeneous_fit"]
 #: under the last, from the uniform skin. Three passes: β_m's error falls with the second and the third factor
 #: and no further with a fourth (with one ``auto``'s check fails and the renderer fits); re-making the
 #: factor after each of three per-pixel fits instead (the scheme before) ends about as well at several
-#: times the cost (docs/reconstruct.md, "From reconstruct/detour.py").
+#: times the cost (docs/reconstruct.md, "From reconstruct/mapfit/detour.py").
 LIGHT_FACTOR_PASSES = 3
 
 
@@ -57,7 +57,7 @@ def homogeneous_fit(run: FitRun, problem: LevelProblem, x, log_scale, setting: s
     the first or second pass, the maps still carry the start's light factor as a smooth bowl.) Otherwise
     the finest is checked at the coarse maps upsampled (smooth: the check measures the scene's
     cross-talk, not that of the maps' own pixel noise, which the renderer blurs and the homogeneous
-    model does not). Both: docs/reconstruct.md, "From reconstruct/detour.py".
+    model does not). Both: docs/reconstruct.md, "From reconstruct/mapfit/detour.py".
     Returns the finest level's result (its evaluation the renderer's unless the skin is uniform), the
     choice and the map grids it fitted, or ``(None, choice, cells)`` where a check fails and the
     renderer's fit must run."""
@@ -123,7 +123,7 @@ class _HomogeneousDetour:
         (result, problem)."""
         run, level, cells = self.run, self.levels[0], self.cells
         skin = x  # the light factor's skin: the start's, then the level's uniform fits (its mean spectrum)
-        # the factors toward it need no render (close to one here: docs/reconstruct.md, "From reconstruct/detour.py")
+        # the factors toward it need no render (close to one here: docs/reconstruct.md, "From reconstruct/mapfit/detour.py")
         for _ in range(LIGHT_FACTOR_PASSES - 1):
             hom = run.problem(level, uniform_light_factor(problem, skin), cells=cells)
             uniform_fit = run.fit_level(0, hom, skin, log_scale, "homogeneous", fit_uniform)
@@ -161,7 +161,7 @@ class _HomogeneousDetour:
     def _finest_factor(self, x, log_scale, factor):
         """The window's edges fall off within a fraction of a millimetre: the finest level's factor is its
         own (an upsampled coarse one is off at the edge pixels: docs/reconstruct.md, "From
-        reconstruct/detour.py"); checked there at the coarse maps upsampled (auto)."""
+        reconstruct/mapfit/detour.py"); checked there at the coarse maps upsampled (auto)."""
         if self.last == 0:
             return factor
         fine_level = self.levels[self.last]

@@ -9,20 +9,20 @@ import math
 
 import torch
 
-from ..formats.cube import Cube
-from ..model import N_PARAMS, PARAMETER_NAMES
-from ..model.maps import SkinMaps
-from .checks import (DataChecks, band_bias, band_bias_notes, flag_value, precision_notes, residual_notes,
+from ...formats.cube import Cube
+from ...model import N_PARAMS, PARAMETER_NAMES
+from ...model.maps import SkinMaps
+from ..diagnosis.checks import (DataChecks, band_bias, band_bias_notes, flag_value, precision_notes, residual_notes,
                      smooth_band_notes)
 from .gauss_newton import curvature_and_columns, level_step
-from .grid_choice import band_noise
-from .hairs import HairFinding, find_hairs, hair_notes, hair_widening
+from ..choice.grid_choice import band_noise
+from ..diagnosis.hairs import HairFinding, find_hairs, hair_notes, hair_widening
 from .optimizers import OptimResult
-from .problem import LevelProblem
-from .schur import marginal_variance
-from .settings import FitSettings
-from .uncertainty import MODEL_FLOOR_ABSOLUTE, MODEL_FLOORS, crosstalk_ratio, model_floor, subnode_sd
-from .unknowns import dparams_dx, near_bound, to_params
+from ..levels.problem import LevelProblem
+from ..levels.schur import marginal_variance
+from ..settings import FitSettings
+from ..diagnosis.uncertainty import MODEL_FLOOR_ABSOLUTE, MODEL_FLOORS, crosstalk_ratio, model_floor, subnode_sd
+from ..levels.unknowns import dparams_dx, near_bound, to_params
 
 __all__ = ["cube_hairs", "finish_fit", "pixel_rms"]
 

@@ -21,24 +21,24 @@ from typing import Callable
 import torch
 import yaml
 
-from ..formats.cube import read_cube
-from ..formats.files import atomic_write
-from ..formats.outputs import claim_outputs
-from ..formats.version import software_version
-from ..model import PARAMETER_NAMES
-from ..model.maps_io import write_maps
-from .checks import FLAG_BITS
-from .fit import MapFit, fit_cube
-from .settings import FitSettings
+from ...formats.cube import read_cube
+from ...formats.files import atomic_write
+from ...formats.outputs import claim_outputs
+from ...formats.version import software_version
+from ...model import PARAMETER_NAMES
+from ...model.maps_io import write_maps
+from ..diagnosis.checks import FLAG_BITS
+from ..mapfit.fit import MapFit, fit_cube
+from ..settings import FitSettings
 from .stats import correlations, pca_explained, residual_stats, trimmed_stats
-from .unknowns import near_bound
+from ..levels.unknowns import near_bound
 
 __all__ = ["MARKER", "OUTPUT_NAMES", "fit_summary", "reconstruct_cube", "write_outputs"]
 
 #: A map resting at a bound of its range (``at_bound_fraction``) on at least this share of the visible
 #: pixels is reported undetermined in ``fit.json``: its value is the bound's, and its σ (the noise's
 #: share of a free parameter's error) says nothing of its error (the demo's carotene, at its lower bound
-#: on every pixel: docs/reconstruct.md, "From reconstruct/outputs.py").
+#: on every pixel: docs/reconstruct.md, "From reconstruct/results/outputs.py").
 UNDETERMINED_AT_BOUND_SHARE = 0.5
 #: What a fit writes; ``fit.json`` last: its presence marks a complete reconstruction.
 MARKER = "fit.json"

@@ -35,11 +35,11 @@ from typing import Callable, Literal
 import torch
 from pydantic import field_validator
 
-from ..formats.settings import Strict, load_settings
-from ..model import N_PARAMS, PARAMETER_NAMES, SkinModel, SkinParams, parameter_bounds
-from ..model.point_model import CONSTANT_NAMES, constant_bounds, constant_defaults, point_reflectance
-from .least_squares import forward_jacobian
-from .settings import FitSettingsError
+from ...formats.settings import Strict, load_settings
+from ...model import N_PARAMS, PARAMETER_NAMES, SkinModel, SkinParams, parameter_bounds
+from ...model.point_model import CONSTANT_NAMES, constant_bounds, constant_defaults, point_reflectance
+from ..levels.least_squares import forward_jacobian
+from ..settings import FitSettingsError
 from .spectrum_fit import (
     _BYTES_PER_ELEMENT,
     _CHUNK_BYTES,
@@ -52,7 +52,7 @@ from .spectrum_fit import (
     solve_box,
     specular_offset,
 )
-from .unknowns import near_bound
+from ..levels.unknowns import near_bound
 
 __all__ = [
     "EXTENDED_MAX_ITERATIONS",

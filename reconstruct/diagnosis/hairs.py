@@ -36,14 +36,14 @@ RED_FROM_NM = 600.0
 #: The closing's half-width (mm): wider than a hair, narrower than a freckle or a vein; at least a pixel.
 CLOSING_MM = 0.1
 #: A pixel is a hair's where the top-hat exceeds this many noise σ: above what the top-hat of hairless
-#: skin reaches at its 99.9th percentile (docs/stability.md, "From reconstruct/hairs.py").
+#: skin reaches at its 99.9th percentile (docs/stability.md, "From reconstruct/diagnosis/hairs.py").
 HAIR_Z = 6.0
 #: The noise σ of the red bands' mean log reflectance is taken as at least this: a cube smoother than a
 #: camera makes (a render without noise) would otherwise call every faint line of the skin a hair.
 MIN_SIGMA = 2e-3
 #: A hair's pixel is grey: the rest of the spectrum's top-hat at most this many times the red one's. The
 #: ratio lies between hair pixels' (a hair's loss spreads wider in red light) and that of the freckles of
-#: Table 2's darkest skin (V exterior) (docs/stability.md, "From reconstruct/hairs.py").
+#: Table 2's darkest skin (V exterior) (docs/stability.md, "From reconstruct/diagnosis/hairs.py").
 GREY_RATIO = 1.2
 #: Connected hair pixels spanning less than this (mm; at least two pixels) are dropped.
 MIN_LENGTH_MM = 0.4

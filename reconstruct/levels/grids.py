@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..model import PARAMETER_NAMES
+from ...model import PARAMETER_NAMES
 from .unknowns import X_LIMIT
 
 __all__ = ["MapGrid", "MapLayout", "node_count"]

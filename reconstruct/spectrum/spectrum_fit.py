@@ -29,11 +29,11 @@ from typing import Callable
 
 import torch
 
-from ..model import N_PARAMS, PARAMETER_NAMES, SkinModel, SkinParams, parameter_bounds
-from ..model.point_tables import PointTables
-from ..model.radiometry import specular_reflectance
-from .least_squares import LAMBDA0, LAMBDA_MAX, damped_step, forward_jacobian, next_damping, predicted_decrease
-from .unknowns import near_bound
+from ...model import N_PARAMS, PARAMETER_NAMES, SkinModel, SkinParams, parameter_bounds
+from ...model.point_tables import PointTables
+from ...model.radiometry import specular_reflectance
+from ..levels.least_squares import LAMBDA0, LAMBDA_MAX, damped_step, forward_jacobian, next_damping, predicted_decrease
+from ..levels.unknowns import near_bound
 
 __all__ = ["AT_BOUND_FRACTION", "PAPER_START", "BoxProblem", "SpectrumFit", "fit_spectra", "joined", "solve_box",
            "specular_offset"]
@@ -49,7 +49,7 @@ _EXTRA_STARTS = (
 #: library entries). Chosen on simulated spectra at the render bands (point_fit.csv): the library's two
 #: nearest plus the two dark starts keep up with the exact fit; the nearest alone plus the paper's start
 #: did not, on a few spectra (other minima of eight bands and five unknowns; docs/model.md, "From
-#: reconstruct/spectrum_fit.py").
+#: reconstruct/spectrum/spectrum_fit.py").
 METHODS = {"tables": _EXTRA_STARTS, "exact": (PAPER_START, *_EXTRA_STARTS)}
 #: The library the tabulated fit starts from: every combination of these levels (1,440 spectra), spaced
 #: about evenly in log concentration over the skin DWRR08 Table 2 spans and beyond.
@@ -66,7 +66,7 @@ LIBRARY_STARTS = 2
 #: over ``PRUNE_FACTOR`` in cost: faster and no spectrum worse at the render bands, where pruning after
 #: fewer iterations made some worse. The exact fit, the reference, runs every start to the end (pruned
 #: the same way, a rare spectrum came out worse). The measurements: docs/model.md, "From
-#: reconstruct/spectrum_fit.py".
+#: reconstruct/spectrum/spectrum_fit.py".
 PRUNE_AFTER = 5
 PRUNE_FACTOR = 4.0
 #: A parameter within this fraction of its range of a bound is reported at the bound.
@@ -74,7 +74,7 @@ AT_BOUND_FRACTION = 1e-3
 #: The free scale's log is kept within ±this (a factor e³: any calibration error is far inside).
 _LOG_SCALE_LIMIT = 3.0
 #: Peak memory per element of the batched problem (spectrum × start × unknown × sample; measured on
-#: NIST's forearms: docs/model.md, "From reconstruct/spectrum_fit.py") and the memory a chunk of spectra
+#: NIST's forearms: docs/model.md, "From reconstruct/spectrum/spectrum_fit.py") and the memory a chunk of spectra
 #: may take.
 _BYTES_PER_ELEMENT, _CHUNK_BYTES = 1200.0, 1 << 30
 
@@ -132,7 +132,7 @@ def fit_spectra(
     tabulated at these bands (``model.point_tables``: within ~1e-6 of the exact model, Jacobian in
     closed form) from each spectrum's two nearest entries of a library of model spectra and the two
     darker starts, pruning losing starts early (faster on NIST with the build and at eight bands, at
-    the same residuals: docs/model.md, "From reconstruct/spectrum_fit.py"). Either way the best end
+    the same residuals: docs/model.md, "From reconstruct/spectrum/spectrum_fit.py"). Either way the best end
     point is kept and its residual is the exact model's.
     ``starts`` replaces the fixed starts. ``chunk``: spectra fitted at once (default: as many as
     ``_CHUNK_BYTES`` holds); ``progress(done, total)`` after each chunk.

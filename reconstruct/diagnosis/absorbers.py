@@ -36,9 +36,9 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from .least_squares import block_factor, block_solve, reverse_jacobian
-from .problem import LevelProblem
-from .unknowns import X_LIMIT, params_of_rows
+from ..levels.least_squares import block_factor, block_solve, reverse_jacobian
+from ..levels.problem import LevelProblem
+from ..levels.unknowns import X_LIMIT, params_of_rows
 
 __all__ = ["DILATE_PX", "EXIT_SHARE", "AbsorberFit", "candidate_rows", "fit_grey_absorbance"]
 

@@ -20,7 +20,7 @@ from typing import Callable
 
 from .first_order import adam, paper_forward_differences
 from .gauss_newton import gn_exact, gn_homogeneous
-from .problem import OptimResult
+from ..levels.problem import OptimResult
 
 __all__ = ["METHODS", "OptimResult", "PER_PIXEL_METHODS"]
 

@@ -17,7 +17,7 @@ import math
 
 import torch
 
-from ..model import PARAMETER_NAMES
+from ...model import PARAMETER_NAMES
 
 __all__ = ["correlations", "pca_explained", "residual_stats", "trimmed_stats"]
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from ..formats.errors import InputError
+from ...formats.errors import InputError
 
 __all__ = ["MeasuredSpectra", "SpectraFileError", "read_spectra_csv"]
 

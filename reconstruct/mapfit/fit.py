@@ -26,24 +26,24 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 
-from ..formats.cube import Cube
-from ..formats.errors import InputError
-from ..model import N_PARAMS
-from ..model.maps import SkinMaps
-from ..formats.resources import require_memory
-from ..formats.threads import library_threads
-from ..model.renderer import SkinRenderer, render_bytes
-from .absorbers import AbsorberFit, candidate_rows, fit_grey_absorbance
-from .checks import DataChecks, check_cube
+from ...formats.cube import Cube
+from ...formats.errors import InputError
+from ...model import N_PARAMS
+from ...model.maps import SkinMaps
+from ...formats.resources import require_memory
+from ...formats.threads import library_threads
+from ...model.renderer import SkinRenderer, render_bytes
+from ..diagnosis.absorbers import AbsorberFit, candidate_rows, fit_grey_absorbance
+from ..diagnosis.checks import DataChecks, check_cube
 from .detour import homogeneous_fit
 from .finish import cube_hairs, finish_fit, pixel_rms
-from .fidelity import ForwardChoice
-from .grid_choice import band_noise, choose_map_grids
+from ..choice.fidelity import ForwardChoice
+from ..choice.grid_choice import band_noise, choose_map_grids
 from .optimizers import METHODS, OptimResult
-from .problem import HomogeneousProblem, LevelProblem, RenderCounter
-from .settings import FitSettings
+from ..levels.problem import HomogeneousProblem, LevelProblem, RenderCounter
+from ..settings import FitSettings
 from .start import STARTS, mean_spectrum_start
-from .unknowns import extend, pyramid, upsample
+from ..levels.unknowns import extend, pyramid, upsample
 
 #: band_weights: noise: the largest weight a band gets, in multiples of the typical band's (the root mean
 #: square noise over the used bands): a band whose measured noise is near zero (a synthetic cube, a band the
@@ -359,10 +359,10 @@ def _carry_weights(prev, problem: LevelProblem) -> torch.Tensor:
 
 
 def band_weights(target: torch.Tensor, mask: torch.Tensor, used: torch.Tensor, mode: str) -> torch.Tensor:
-    """Each band's weight in the loss ``(L,)`` float64 (0 for an unused band) for a cube ``(L, H, W)`` and its
-    fit ``mask`` ``(H, W)``: with ``mode`` noise, the typical band's noise over the band's own
+    """Each band's weight in the loss ``(L,)`` float64 (zero for an unused band) for a cube ``(L, H, W)`` and
+    its fit ``mask`` ``(H, W)``: with ``mode`` noise, the typical band's noise over the band's own
     (``band_noise``: the least-squares fit of unequal noise, the estimate σ describes), at most
-    ``NOISE_WEIGHT_MAX``; equal (or a cube too small to measure its noise): 1 for every used band."""
+    ``NOISE_WEIGHT_MAX``; equal (or a cube too small to tell its noise): one for every used band."""
     weight = used.to(torch.float64).cpu()
     if mode == "equal" or int(used.sum()) < 2:
         return weight

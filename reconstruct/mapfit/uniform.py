@@ -21,10 +21,10 @@ import time
 
 import torch
 
-from ..model import N_PARAMS
-from .least_squares import LAMBDA0, LAMBDA_MAX, LAMBDA_MIN, damped_step, reverse_jacobian
-from .problem import HomogeneousProblem, OptimResult
-from .unknowns import X_LIMIT, to_params
+from ...model import N_PARAMS
+from ..levels.least_squares import LAMBDA0, LAMBDA_MAX, LAMBDA_MIN, damped_step, reverse_jacobian
+from ..levels.problem import HomogeneousProblem, OptimResult
+from ..levels.unknowns import X_LIMIT, to_params
 
 __all__ = ["fit_uniform", "uniform_spectrum"]
 

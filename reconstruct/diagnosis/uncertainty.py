@@ -40,8 +40,8 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from ..model import N_PARAMS, PARAMETER_NAMES
-from .problem import Evaluation, LevelProblem
+from ...model import N_PARAMS, PARAMETER_NAMES
+from ..levels.problem import Evaluation, LevelProblem
 
 __all__ = ["FLOOR_COVERAGE", "MODEL_FLOOR", "MODEL_FLOORS", "MODEL_FLOOR_ABSOLUTE", "PROBE_STEP", "crosstalk_ratio",
            "floor_for_coverage", "model_floor", "subnode_sd"]

@@ -53,7 +53,7 @@ def reverse_jacobian(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor
     outputs per row (a cube's bands, not a spectrometer's hundred samples): forward mode pays a fixed
     cost per operation with a non-dual operand (a constant, a scalar: its zero tangent takes a slow
     path in torch 2.13), which reverse mode does not; with many outputs per row forward mode wins
-    (timings: docs/reconstruct.md, "From reconstruct/least_squares.py")."""
+    (timings: docs/reconstruct.md, "From reconstruct/levels/least_squares.py")."""
     xx = x.detach().clone().requires_grad_(True)
     with torch.enable_grad():
         out = fn(xx)

@@ -24,9 +24,9 @@ import time
 
 import torch
 
-from ..model import N_PARAMS
-from .problem import LevelProblem, OptimResult
-from .unknowns import X_LIMIT
+from ...model import N_PARAMS
+from ..levels.problem import LevelProblem, OptimResult
+from ..levels.unknowns import X_LIMIT
 
 __all__ = ["FIRST_ORDER_CAP", "adam", "paper_forward_differences"]
 

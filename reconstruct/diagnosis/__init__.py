@@ -1,0 +1,1 @@
+"""What the fit says of its maps: the cube's checks and flags, σ and its widening, hairs, grey absorbers."""

@@ -1,0 +1,1 @@
+"""What the fit writes: maps.exr, fit.json, report.png and their statistics."""
