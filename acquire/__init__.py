@@ -9,17 +9,17 @@ model). ``open_devices(rig, simulated=…)`` opens the instruments a rig names; 
 """
 
 from .connect import Devices, open_devices
-from .devices import Camera, CameraError, DeviceError, ExposureSettings, FilterWheel, WheelError
-from .dng import write_dng
-from .fw102c import FW102C
-from .gphoto import RAW_SUFFIXES, GPhotoCamera, detect_cameras, format_shutter_s, parse_aperture_f, parse_shutter_s
-from .rig import RigConfig, RigError, load_rig
-from .scene import SceneConfig, SceneError, SkinScene, load_scene
+from .hardware.devices import Camera, CameraError, DeviceError, ExposureSettings, FilterWheel, WheelError
+from .hardware.dng import write_dng
+from .hardware.fw102c import FW102C
+from .hardware.gphoto import RAW_SUFFIXES, GPhotoCamera, detect_cameras, format_shutter_s, parse_aperture_f, parse_shutter_s
+from .hardware.rig import RigConfig, RigError, load_rig
+from .simulator.scene import SceneConfig, SceneError, SkinScene, load_scene
 from .session import AutoOperator, SessionError, SessionSummary, plan_session, run_session
-from .simdevices import SimulatedCamera, SimulatedWheel
-from .simulated import SimulatedBench, SimulatedFrame
-from .simulation_settings import SimulationError, SimulationSettings, load_simulation_settings
-from .virtual_fw102c import WHEEL_FAULTS, VirtualFW102C
+from .hardware.simdevices import SimulatedCamera, SimulatedWheel
+from .simulator.simulated import SimulatedBench, SimulatedFrame
+from .simulator.simulation_settings import SimulationError, SimulationSettings, load_simulation_settings
+from .hardware.virtual_fw102c import WHEEL_FAULTS, VirtualFW102C
 
 __all__ = [
     "FW102C", "RAW_SUFFIXES", "WHEEL_FAULTS", "AutoOperator", "Camera", "CameraError", "DeviceError", "Devices", "ExposureSettings",

@@ -67,7 +67,7 @@ def capture(
     """
     from .connect import open_devices  # noqa: PLC0415
     from .session import run_session  # noqa: PLC0415
-    from .simulation_settings import truth_overrides  # noqa: PLC0415
+    from .simulator.simulation_settings import truth_overrides  # noqa: PLC0415
 
     rig, sim = _session_rig(out, sim, sim_camera, rig_file, wheel_port, resume)
     command_threads(threads)
@@ -96,7 +96,7 @@ def _session_rig(out: Path, sim: bool, sim_camera: bool, rig_file: Optional[Path
     whether everything is simulated; refuses options that do not go together."""
     from ..formats.manifest import read_manifest  # noqa: PLC0415
     from ..formats.outputs import refuse_inside_session  # noqa: PLC0415
-    from .rig import load_rig  # noqa: PLC0415
+    from .hardware.rig import load_rig  # noqa: PLC0415
 
     if sim and sim_camera:
         raise InputError("choose one of --sim and --sim-camera")
@@ -162,7 +162,7 @@ def example_maps(
     from ..formats.maps import MAX_MM_PER_PIXEL, MIN_MM_PER_PIXEL  # noqa: PLC0415
     from ..formats.outputs import check_outputs, write_file  # noqa: PLC0415
     from ..model.maps_io import write_maps  # noqa: PLC0415
-    from .scene import SkinScene, load_scene  # noqa: PLC0415
+    from .simulator.scene import SkinScene, load_scene  # noqa: PLC0415
 
     if not 8 <= size <= 4096:
         raise InputError("--size must be 8–4096 pixels")

@@ -22,10 +22,10 @@ from typing import TYPE_CHECKING, Optional
 
 from ..formats.errors import InputError
 from ..formats.rig import RigConfig
-from .devices import Camera, FilterWheel
+from .hardware.devices import Camera, FilterWheel
 
 if TYPE_CHECKING:
-    from .simulated import SimulatedBench
+    from .simulator.simulated import SimulatedBench
 
 __all__ = ["Devices", "open_devices"]
 
@@ -88,9 +88,9 @@ def open_devices(
     bench = None
     notes: dict = {}
     if simulated or rig.camera.driver == "simulated":
-        from .scene import load_scene  # noqa: PLC0415 (the simulator loads the model and its tables)
-        from .simulated import SimulatedBench  # noqa: PLC0415
-        from .simulation_settings import load_simulation_settings  # noqa: PLC0415
+        from .simulator.scene import load_scene  # noqa: PLC0415 (the simulator loads the model and its tables)
+        from .simulator.simulated import SimulatedBench  # noqa: PLC0415
+        from .simulator.simulation_settings import load_simulation_settings  # noqa: PLC0415
 
         settings = load_simulation_settings(simulation, **({"truth": truth} if truth else {}))
         bench = SimulatedBench(rig, load_scene(scene), settings, seed, device=device)
@@ -110,21 +110,21 @@ def open_devices(
 
 def _wheel(rig: RigConfig, simulated: bool, time_scale: float, port: str | None) -> FilterWheel:
     if simulated:
-        from .simdevices import SimulatedWheel  # noqa: PLC0415
+        from .hardware.simdevices import SimulatedWheel  # noqa: PLC0415
 
         return SimulatedWheel(rig.wheel.position_count, time_scale=time_scale)
     if not port:
         raise InputError("no filter wheel port: set wheel.port in the rig file or pass --wheel-port")
-    from .fw102c import FW102C  # noqa: PLC0415
+    from .hardware.fw102c import FW102C  # noqa: PLC0415
 
     return FW102C.open(port, rig.wheel)
 
 
 def _camera(rig: RigConfig, bench: Optional["SimulatedBench"], wheel: FilterWheel) -> Camera:
     if bench is not None:
-        from .simdevices import SimulatedCamera  # noqa: PLC0415
+        from .hardware.simdevices import SimulatedCamera  # noqa: PLC0415
 
         return SimulatedCamera(bench, wheel)
-    from .gphoto import GPhotoCamera  # noqa: PLC0415
+    from .hardware.gphoto import GPhotoCamera  # noqa: PLC0415
 
     return GPhotoCamera(rig.camera)

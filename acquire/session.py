@@ -23,12 +23,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional, Protocol
 
-from .devices import Camera, ExposureSettings, FilterWheel
+from .hardware.devices import Camera, ExposureSettings, FilterWheel
 from ..formats.errors import InputError
 from ..formats.files import file_sha256, now_iso
 from ..formats.outputs import inside_session
 from ..formats.manifest import FrameRecord, Manifest, ManifestError, read_manifest, write_manifest
-from .rig import RigConfig
+from .hardware.rig import RigConfig
 
 log = logging.getLogger(__name__)
 

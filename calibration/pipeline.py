@@ -51,7 +51,7 @@ from .checks import (BandFrames, Flag, alignment_flags, card_spectrum_flags, che
 from .corrections import band_factors, gray_card_level, reflectance_ratio, roi_to_superpixels, subtract_dark
 from .errors import CalibrationError
 from .raw import RawImage, cell_centroid, cell_weights, read_raw
-from .report import Thumbnail, thumbnail, write_contact_sheet
+from .report import Thumbnail, band_caption, band_snr, thumbnail, write_contact_sheet
 from .settings import CalibrationSettings
 from .window import box_filter, find_window, rectify, superpixel_to_raw_xy
 from ..formats.threads import library_threads
@@ -384,7 +384,7 @@ def _band_entries(bands: list[_Band], alignment: _Alignment, cube_r: np.ndarray,
         entry["alignment_shift_px"] = [_finite(v) for v in alignment.shifts[k]]
         entry["alignment_applied"] = bool(alignment.applied[k])
         entry["alignment_correlation"] = _finite(alignment.correlation[k])
-        entry["snr"] = _finite(_snr(cube_r[k], mask))
+        entry["snr"] = _finite(band_snr(cube_r[k], mask))
         entry["median_reflectance"] = _finite(float(np.median(cube_r[k][mask])) if mask.any() else float("nan"))
         entries.append(entry)
     return entries
@@ -442,7 +442,7 @@ def _write_images(cube: Cube, bands: list[_Band], entries: list[dict], flags: li
     cube_r, mask = cube.reflectance.numpy(), cube.mask.numpy()
     write_contact_sheet(
         staging.path(SHEET_NAME), wavelengths, [b.thumb for b in bands], cube_r, mask,
-        [_caption(e, k == inputs.reference_index) for k, e in enumerate(entries)], [any(f.band_nm == w for f in flags) for w in wavelengths],
+        [band_caption(e, k == inputs.reference_index) for k, e in enumerate(entries)], [any(f.band_nm == w for f in flags) for w in wavelengths],
         f"{inputs.session.name}: {len(bands)} bands, {len(flags)} flag(s), {mask.mean():.0%} of the window valid",
     )
 
@@ -466,29 +466,6 @@ def _reference_band(wavelengths: list[float], chosen: Optional[float]) -> int:
         if abs(w - chosen) < 1e-6:
             return k
     raise CalibrationError(f"align_reference_nm {chosen:g} is not a band of the rig ({', '.join(f'{w:g}' for w in wavelengths)})")
-
-
-def _snr(band: np.ndarray, mask: np.ndarray) -> float:
-    """Median over the noise σ of Immerkær's estimator ("Fast noise variance estimation", CVIU 1996):
-    σ = √(π/2) / 6 · mean |I ∗ N|, N = [[1, −2, 1], [−2, 4, −2], [1, −2, 1]], over valid 3×3 neighbourhoods.
-    On the cube grid, after resampling: texture finer than a few pixels counts as noise (a lower bound)."""
-    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-    inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    if inner.sum() < 16:
-        return float("nan")
-    response = cv2.filter2D(band.astype(np.float32), -1, kernel, borderType=cv2.BORDER_REPLICATE)
-    sigma = math.sqrt(math.pi / 2) / 6.0 * float(np.mean(np.abs(response[inner])))
-    return float(np.median(band[mask])) / sigma if sigma > 0 else float("inf")
-
-
-def _caption(entry: dict, reference: bool) -> str:
-    dx, dy = entry["alignment_shift_px"]
-    if reference:
-        shift = "(reference band)"
-    else:
-        shift = "-" if dx is None else f"{dx:+.2f}, {dy:+.2f}" + ("" if entry["alignment_applied"] else " (not applied)")
-    snr = "-" if entry["snr"] is None else f"{entry['snr']:.0f}"
-    return f"flash x{entry['flash_factor']:.3f}  SNR {snr}\nshift {shift}\nsat {entry['saturated_fraction']:.1%}"
 
 
 def _finite(value) -> Optional[float]:

@@ -9,6 +9,7 @@ noticeable share of a small calibration (timings: docs/calibration.md, "From cal
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
@@ -16,7 +17,7 @@ from typing import Optional, Sequence
 import cv2
 import numpy as np
 
-__all__ = ["Thumbnail", "thumbnail", "write_contact_sheet"]
+__all__ = ["Thumbnail", "band_caption", "band_snr", "thumbnail", "write_contact_sheet"]
 
 _THUMB_PX = 320
 _PANEL_PX = 240  # width of a band's column
@@ -120,3 +121,27 @@ def write_contact_sheet(
     if not cv2.imwrite(str(path), canvas):
         raise OSError(f"{path}: cannot write the contact sheet")
     return path
+
+
+def band_snr(band: np.ndarray, mask: np.ndarray) -> float:
+    """Median over the noise σ of Immerkær's estimator ("Fast noise variance estimation", CVIU 1996):
+    σ = √(π/2) / 6 · mean |I ∗ N|, N = [[1, −2, 1], [−2, 4, −2], [1, −2, 1]], over valid 3×3 neighbourhoods.
+    On the cube grid, after resampling: texture finer than a few pixels counts as noise (a lower bound)."""
+    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    if inner.sum() < 16:
+        return float("nan")
+    response = cv2.filter2D(band.astype(np.float32), -1, kernel, borderType=cv2.BORDER_REPLICATE)
+    sigma = math.sqrt(math.pi / 2) / 6.0 * float(np.mean(np.abs(response[inner])))
+    return float(np.median(band[mask])) / sigma if sigma > 0 else float("inf")
+
+
+def band_caption(entry: dict, reference: bool) -> str:
+    """A band's caption on the contact sheet: its flash factor, SNR, alignment shift and saturated share."""
+    dx, dy = entry["alignment_shift_px"]
+    if reference:
+        shift = "(reference band)"
+    else:
+        shift = "-" if dx is None else f"{dx:+.2f}, {dy:+.2f}" + ("" if entry["alignment_applied"] else " (not applied)")
+    snr = "-" if entry["snr"] is None else f"{entry['snr']:.0f}"
+    return f"flash x{entry['flash_factor']:.3f}  SNR {snr}\nshift {shift}\nsat {entry['saturated_fraction']:.1%}"

@@ -4,7 +4,7 @@ DWRR08 §5 chose its filters "based on simulations using our skin model … an e
 combinations that provided an optimal signal-to-noise ratio with respect to the intrinsic model
 parameters". Here the same search, stated:
 
-- **What is photographed** (``Radiometry``): the simulator's own chain (``acquire/simulated.py``): the
+- **What is photographed** (``Radiometry``): the simulator's own chain (``acquire/simulator/simulated.py``): the
   flash (the simulation settings' blackbody; the simulator has no xenon spectrum, so no ragged
   region near 420 nm), the filter (a Gaussian of the catalogue's FWHM, the simulator's quadrature), the
   Spectralon and the polarizers' factors, the sensor's Bayer sensitivities, each band's ISO chosen as the
@@ -136,10 +136,10 @@ class Radiometry:
     noise of the calibrated reflectance of a cube pixel (``reflectance_sd``)."""
 
     def __init__(self, rig=None, simulation=None) -> None:
-        from .acquire._optics import band_spectrum  # noqa: PLC0415
-        from .acquire.rig import load_rig  # noqa: PLC0415
-        from .acquire.simulated import flash_power  # noqa: PLC0415
-        from .acquire.simulation_settings import load_simulation_settings  # noqa: PLC0415
+        from .acquire.simulator._optics import band_spectrum  # noqa: PLC0415
+        from .acquire.hardware.rig import load_rig  # noqa: PLC0415
+        from .acquire.simulator.simulated import flash_power  # noqa: PLC0415
+        from .acquire.simulator.simulation_settings import load_simulation_settings  # noqa: PLC0415
 
         self.rig = rig or load_rig()
         self.settings = simulation if simulation is not None else load_simulation_settings(None)
@@ -207,7 +207,7 @@ class Radiometry:
 
     def _rgb_weights(self) -> tuple[np.ndarray, np.ndarray]:
         """Wavelengths ``(K,)`` over ``RGB_SPAN_NM`` and flash × sensitivity of each channel there ``(3, K)``."""
-        from .acquire._optics import CHANNELS, blackbody, channel_sensitivity  # noqa: PLC0415
+        from .acquire.simulator._optics import CHANNELS, blackbody, channel_sensitivity  # noqa: PLC0415
 
         s = self.settings
         nodes = np.arange(RGB_SPAN_NM[0], RGB_SPAN_NM[1] + RGB_STEP_NM / 2, RGB_STEP_NM)
@@ -356,7 +356,7 @@ def _outer(weighted: torch.Tensor) -> torch.Tensor:
 def shared_pixels(rig=None, cells_mm: dict[str, float] | None = None) -> torch.Tensor:
     """Pixels of the rig's cube that share one value of each parameter ``(5,)`` in the fit's layout
     (``DEFAULT_MAP_CELL_MM``: a node's cell², the whole window at most; 1 per pixel)."""
-    from .acquire.rig import load_rig  # noqa: PLC0415
+    from .acquire.hardware.rig import load_rig  # noqa: PLC0415
     from .reconstruct.settings import DEFAULT_MAP_CELL_MM  # noqa: PLC0415
 
     g = (rig or load_rig()).geometry
@@ -594,7 +594,7 @@ def write_design(design: BandDesign, out: Path, rig=None, *, force: bool = False
 
     import yaml  # noqa: PLC0415
 
-    from .acquire.rig import load_rig  # noqa: PLC0415
+    from .acquire.hardware.rig import load_rig  # noqa: PLC0415
     from .formats.files import atomic_write  # noqa: PLC0415
     from .formats.outputs import claim_outputs  # noqa: PLC0415
 
@@ -666,7 +666,7 @@ def design_bands_cli(
     Example: skinlayers design-bands                 (9 of the default catalogue: 10-nm filters, 400–720 nm)
              skinlayers design-bands --catalog my_filters.csv --count 8 -o my_design
     """
-    from .acquire.rig import load_rig  # noqa: PLC0415
+    from .acquire.hardware.rig import load_rig  # noqa: PLC0415
 
     if criterion not in CRITERIA:
         raise InputError(f"--criterion {criterion!r}: choose one of {', '.join(CRITERIA)}")

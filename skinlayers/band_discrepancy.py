@@ -78,9 +78,9 @@ def measure_discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = 
                         cube_px: int = DISCREPANCY_CUBE_PX, device: str | torch.device = "cpu") -> Discrepancy:
     """The simulator's render of the demo's scene through each filter against the fit's renderer at the
     same maps (the module docstring); minutes for a catalogue of tens of filters on two CPU cores."""
-    from .acquire._optics import band_spectrum  # noqa: PLC0415
-    from .acquire.scene import scene_from_dict  # noqa: PLC0415
-    from .acquire.simulated import SimulatedBench  # noqa: PLC0415
+    from .acquire.simulator._optics import band_spectrum  # noqa: PLC0415
+    from .acquire.simulator.scene import scene_from_dict  # noqa: PLC0415
+    from .acquire.simulator.simulated import SimulatedBench  # noqa: PLC0415
     from .truths import demo_scene  # noqa: PLC0415
 
     start = time.perf_counter()
@@ -144,7 +144,7 @@ def discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPA
     measurement depends on (the rig's window and camera angle, the scene, seed, simulation and model
     settings): a later design reads back the filters measured before and measures the others only;
     ``say`` reports a measurement's start."""
-    from .acquire.simulation_settings import load_simulation_settings  # noqa: PLC0415
+    from .acquire.simulator.simulation_settings import load_simulation_settings  # noqa: PLC0415
     from .truths import demo_scene  # noqa: PLC0415
     from .formats.files import atomic_write  # noqa: PLC0415
     from .model.settings import ModelSettings  # noqa: PLC0415

@@ -260,7 +260,7 @@ def _shipped_renders(truth: dict, seed: int, size: int, scene_given: bool) -> di
 def _checked_options(out: Path | None, size: int, device: str, scene: Path | None, physics: str,
                      photons: int | None) -> dict:
     """The demo's options checked before any folder is made; the simulation's truth overrides."""
-    from .acquire.simulation_settings import truth_overrides  # noqa: PLC0415
+    from .acquire.simulator.simulation_settings import truth_overrides  # noqa: PLC0415
 
     if size < 16 or size % 8:
         raise InputError(f"--size {size}: expected a multiple of 8, at least 16 (e.g. 64, 128, 256)")
@@ -268,7 +268,7 @@ def _checked_options(out: Path | None, size: int, device: str, scene: Path | Non
         raise InputError(f"--device {device!r}: expected cpu, cuda or auto")
     truth = truth_overrides(physics, photons)
     if scene is not None:  # a bad scene file is refused before any folder is made
-        from .acquire.scene import load_scene  # noqa: PLC0415
+        from .acquire.simulator.scene import load_scene  # noqa: PLC0415
 
         load_scene(scene)
     if out is not None:

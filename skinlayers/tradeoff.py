@@ -385,7 +385,7 @@ def make_session(spec: SessionSpec, folder: Path, scene_over: dict | None = None
 
     import yaml  # noqa: PLC0415
 
-    from .acquire.simulation_settings import default_simulation_path  # noqa: PLC0415
+    from .acquire.simulator.simulation_settings import default_simulation_path  # noqa: PLC0415
     from .calibration import calibrate_session  # noqa: PLC0415
     from .demo import simulate_session  # noqa: PLC0415
     from .truths import demo_scene, session_rig  # noqa: PLC0415

@@ -80,7 +80,7 @@ FEATURE_EDGE_MM = 0.1
 def demo_scene() -> dict:
     """The demo's scene: the simulator's default without hairs. Hairs are interface absorbance the fit's
     model does not hold; their halo in red light biases the maps around them (measured in docs/accuracy.md)."""
-    from .acquire.scene import load_scene  # noqa: PLC0415
+    from .acquire.simulator.scene import load_scene  # noqa: PLC0415
 
     scene = load_scene(None).model_dump(mode="json")
     scene["hairs"]["count"] = 0
@@ -89,7 +89,7 @@ def demo_scene() -> dict:
 
 def session_rig(size: int):
     """The default rig at a ``size``² cube, its camera simulated (as the demo photographs with)."""
-    from .acquire.rig import load_rig  # noqa: PLC0415
+    from .acquire.hardware.rig import load_rig  # noqa: PLC0415
 
     return load_rig(geometry={"cube_px": size, "rectify_px": max(2 * size, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
 
@@ -237,9 +237,9 @@ def make_session_truth(seed: int, out: Path = TRUTH_DIR, photons: int = SESSION_
 
     Resumable: each band is kept in ``.session_<seed>.partial.pt`` as it is rendered, and a run that finds
     that file (made with the same photons, size, scene, bands and software) renders only the bands it lacks."""
-    from .acquire.scene import scene_from_dict  # noqa: PLC0415
-    from .acquire.simulated import SimulatedBench  # noqa: PLC0415
-    from .acquire.simulation_settings import load_simulation_settings  # noqa: PLC0415
+    from .acquire.simulator.scene import scene_from_dict  # noqa: PLC0415
+    from .acquire.simulator.simulated import SimulatedBench  # noqa: PLC0415
+    from .acquire.simulator.simulation_settings import load_simulation_settings  # noqa: PLC0415
     from .formats.version import software_version  # noqa: PLC0415
 
     out.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,7 @@ III_INTERIOR = (0.005364, 0.151566, 0.001441, 0.000081, 0.004674)  # C_m, β_m, 
 
 
 def test_the_radiometry_chooses_the_rigs_isos_and_predicts_its_noise():
-    from skinlayers.acquire.rig import load_rig
+    from skinlayers.acquire.hardware.rig import load_rig
     from skinlayers.band_design import Filter, Radiometry, band_jacobian
 
     rig, radiometry = load_rig(), Radiometry()
@@ -135,7 +135,7 @@ def test_the_model_error_is_measured_where_the_skin_varies_and_kept(tmp_path, mo
     """The simulator's render against the fit's at the same maps: where blood absorbs (560 nm) the skin's
     variation within a pixel shows; at 700 nm little; the measurement is cached and read back."""
     from skinlayers import band_discrepancy
-    from skinlayers.acquire.rig import load_rig
+    from skinlayers.acquire.hardware.rig import load_rig
     from skinlayers.band_design import Filter
 
     monkeypatch.setenv("SKINLAYERS_CACHE", str(tmp_path))
@@ -247,7 +247,7 @@ def test_a_bad_catalogue_is_refused_naming_the_line(tmp_path, text, words):
 def test_the_command_writes_a_rig_that_loads(tmp_path, run_cli):
     import json
 
-    from skinlayers.acquire.rig import load_rig
+    from skinlayers.acquire.hardware.rig import load_rig
 
     catalogue = tmp_path / "filters.csv"
     catalogue.write_text("centre_nm,fwhm_nm\n" + "".join(f"{c},10\n" for c in range(420, 660, 20)))  # 12 filters

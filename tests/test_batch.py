@@ -25,7 +25,7 @@ def made_sessions(tmp_path_factory) -> Path:
     """Three simulated sessions of a 16² cube, made once; each test copies them."""
     import yaml
 
-    from skinlayers.acquire.rig import load_rig
+    from skinlayers.acquire.hardware.rig import load_rig
     from skinlayers.demo import simulate_session
     from skinlayers.truths import demo_scene
 

@@ -19,11 +19,11 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from skinlayers.acquire.fw102c import FW102C
-from skinlayers.acquire.gphoto import parse_aperture_f, parse_shutter_s
-from skinlayers.acquire.rig import load_rig
-from skinlayers.acquire.scene import load_scene
-from skinlayers.acquire.simulation_settings import load_simulation_settings
+from skinlayers.acquire.hardware.fw102c import FW102C
+from skinlayers.acquire.hardware.gphoto import parse_aperture_f, parse_shutter_s
+from skinlayers.acquire.hardware.rig import load_rig
+from skinlayers.acquire.simulator.scene import load_scene
+from skinlayers.acquire.simulator.simulation_settings import load_simulation_settings
 from skinlayers.calibration.settings import load_calibration_settings
 from skinlayers.formats.cube import read_cube
 from skinlayers.formats.errors import SkinlayersError
@@ -176,7 +176,7 @@ def test_exr_damaged_bytes(tmp_path, valid_exr, reader, data):
 # -- DNG / raw ----------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def valid_dng(tmp_path_factory) -> bytes:
-    from skinlayers.acquire.dng import write_dng
+    from skinlayers.acquire.hardware.dng import write_dng
 
     raw = (np.arange(16 * 24, dtype=np.uint16).reshape(16, 24) * 7) % 4000
     path = write_dng(tmp_path_factory.mktemp("dng") / "frame.dng", raw, bits=12, black_level=[64] * 4, white_level=4095)
@@ -287,7 +287,7 @@ def test_gphoto_values(text):
 @_short(FUZZ_EXAMPLES)
 @given(out=st.text(max_size=300))
 def test_gphoto_auto_detect_output(monkeypatch, out):
-    from skinlayers.acquire import gphoto
+    from skinlayers.acquire.hardware import gphoto
 
     monkeypatch.setattr(gphoto, "_run_gphoto2", lambda *a, **k: out)
     found = gphoto.detect_cameras()

@@ -52,11 +52,11 @@ _CITATION = re.compile(r"(?:§|Fig\. |Eq\. |Table |DWRR08 )[\d.–, ]+")
 #: (file, the paragraph's first words) → why its figures are not the project's measurements. Keep it short:
 #: an entry that no longer matches a flagged paragraph fails ``test_allowlist_is_current``.
 ALLOWLIST = {
-    ("acquire/fw102c.py", "* Whether the prompt after"):
+    ("acquire/hardware/fw102c.py", "* Whether the prompt after"):
         "Bev.Instruments' measured half-turn time of the wheel: a cited third party's figure",
-    ("acquire/virtual_fw102c.py", "Behaviour, as"):
+    ("acquire/hardware/virtual_fw102c.py", "Behaviour, as"):
         "the wheel's manual and Bev.Instruments' published timings: cited third-party figures",
-    ("acquire/simdevices.py", "It reports exactly the listed value"):
+    ("acquire/hardware/simdevices.py", "It reports exactly the listed value"):
         "a tolerance setting (1/32 stop) and its arithmetic, not a result",
     ("calibration/raw.py", "**Superpixel.**"):
         "512 → 256 is the window's resampling (image sizes), not a before/after result",

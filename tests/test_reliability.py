@@ -262,7 +262,7 @@ def test_a_pixel_size_no_optics_resolves_is_refused(tmp_path, run_cli):
 def test_a_rig_asking_for_a_giant_cube_is_refused(tmp_path, run_cli):
     import yaml
 
-    from skinlayers.acquire.rig import default_rig_path
+    from skinlayers.acquire.hardware.rig import default_rig_path
 
     data = yaml.safe_load(default_rig_path().read_text())
     data["geometry"]["cube_px"] = 100_000

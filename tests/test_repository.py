@@ -264,9 +264,9 @@ ROOM_MODULES = 12
 #: Modules and folders still over the limits, with today's size as a ceiling (issue 57 empties both).
 _MODULES_TOO_LONG_FOR_NOW: dict[str, int] = {
     "skinlayers/band_design.py": 696, "skinlayers/tradeoff.py": 632,
-    "model/layer_totals.py": 626, "calibration/pipeline.py": 513,
+    "model/layer_totals.py": 626,
 }
-_ROOMS_TOO_FULL_FOR_NOW: dict[str, int] = {"model": 27, "acquire": 15, "skinlayers": 14}
+_ROOMS_TOO_FULL_FOR_NOW: dict[str, int] = {"model": 27, "skinlayers": 14}
 
 
 def _rooms() -> dict[str, int]:

@@ -200,7 +200,7 @@ def test_a_wrong_certificate_is_recorded_at_its_band_only():
 
 
 def _default_rig() -> dict:
-    from skinlayers.acquire.rig import load_rig
+    from skinlayers.acquire.hardware.rig import load_rig
 
     return load_rig().model_dump(mode="json")
 

@@ -85,10 +85,10 @@ def test_the_shipped_forward_truths_cover_every_scene():
 def test_a_session_photographed_from_the_shipped_monte_carlo(tmp_path):
     """The bench adopts the shipped renders: its truth is the Monte Carlo's, box-averaged to the cube;
     renders of another grid are refused."""
-    from skinlayers.acquire.scene import scene_from_dict
-    from skinlayers.acquire.simulated import SimulatedBench
-    from skinlayers.acquire.simulation_settings import load_simulation_settings
-    from skinlayers.acquire.simulation_settings import SimulationError
+    from skinlayers.acquire.simulator.scene import scene_from_dict
+    from skinlayers.acquire.simulator.simulated import SimulatedBench
+    from skinlayers.acquire.simulator.simulation_settings import load_simulation_settings
+    from skinlayers.acquire.simulator.simulation_settings import SimulationError
     from skinlayers.truths import session_rig
 
     record, renders = session_renders(SESSION_SEEDS[0])

@@ -100,7 +100,7 @@ def test_photons_without_transport_truth_are_refused(tmp_path, run_cli):
 def test_a_transport_session_goes_through_calibration_and_the_fit(tmp_path, run_cli):
     """The whole pipeline on skin the fit's physics did not make: nine bands, a 32² cube, 20,000 photons
     per wavelength node (slow: about a minute on two cores)."""
-    from skinlayers.acquire.rig import load_rig
+    from skinlayers.acquire.hardware.rig import load_rig
 
     rig = tmp_path / "rig.yaml"
     rig.write_text(yaml.safe_dump(load_rig(geometry={"cube_px": 32, "rectify_px": 128}).model_dump(mode="json")))

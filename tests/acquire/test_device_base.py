@@ -10,13 +10,13 @@ from typing import Callable, Optional
 
 import pytest
 
-from skinlayers.acquire.devices import Camera, CameraError, ExposureSettings, FilterWheel, WheelError
-from skinlayers.acquire.fw102c import FW102C
-from skinlayers.acquire.gphoto import GPhotoCamera
-from skinlayers.acquire.rig import load_rig
-from skinlayers.acquire.simdevices import SimulatedCamera, SimulatedWheel
-from skinlayers.acquire.simulated import SimulatedBench
-from skinlayers.acquire.simulation_settings import simulation_from_dict
+from skinlayers.acquire.hardware.devices import Camera, CameraError, ExposureSettings, FilterWheel, WheelError
+from skinlayers.acquire.hardware.fw102c import FW102C
+from skinlayers.acquire.hardware.gphoto import GPhotoCamera
+from skinlayers.acquire.hardware.rig import load_rig
+from skinlayers.acquire.hardware.simdevices import SimulatedCamera, SimulatedWheel
+from skinlayers.acquire.simulator.simulated import SimulatedBench
+from skinlayers.acquire.simulator.simulation_settings import simulation_from_dict
 
 # --- every device class as a context manager --------------------------------------------------------
 

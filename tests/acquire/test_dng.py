@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import rawpy
 
-from skinlayers.acquire.dng import write_dng
+from skinlayers.acquire.hardware.dng import write_dng
 
 #: rawpy's colour indices of an RGGB sensor: R=0, G=1, B=2, second G=3.
 RGGB_PATTERN = [[0, 1], [3, 2]]

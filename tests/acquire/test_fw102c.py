@@ -9,8 +9,8 @@ from typing import Optional
 
 import pytest
 
-from skinlayers.acquire.devices import FilterWheel, WheelError
-from skinlayers.acquire.fw102c import FW102C
+from skinlayers.acquire.hardware.devices import FilterWheel, WheelError
+from skinlayers.acquire.hardware.fw102c import FW102C
 
 PORT = "/dev/ttyFAKE0"
 IDN = b"THORLABS FW102C/FW212C Filter Wheel version 1.07"
@@ -302,9 +302,9 @@ def test_bad_settings_refused(kw):
 def test_every_exchange_is_logged_for_skinlayers_vv(caplog):
     """``skinlayers -vv``: each command sent and its answer, at DEBUG, naming the port."""
     w, _ = wheel([(b"*idn?\r", reply(b"*idn?", IDN)), PCOUNT6])
-    with caplog.at_level(logging.DEBUG, logger="skinlayers.acquire.fw102c"):
+    with caplog.at_level(logging.DEBUG, logger="skinlayers.acquire.hardware.fw102c"):
         w.identify()
         assert w.position_count == 6
-    said = [r.getMessage() for r in caplog.records if r.name == "skinlayers.acquire.fw102c"]
+    said = [r.getMessage() for r in caplog.records if r.name == "skinlayers.acquire.hardware.fw102c"]
     assert len(said) == 2 and PORT in said[0] and "'*idn?'" in said[0] and IDN.decode() in said[0], said
     assert "'pcount?'" in said[1] and "'6'" in said[1], said

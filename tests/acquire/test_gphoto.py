@@ -10,15 +10,15 @@ from pathlib import Path
 
 import pytest
 
-from skinlayers.acquire.devices import Camera, CameraError, ExposureSettings
-from skinlayers.acquire.gphoto import (
+from skinlayers.acquire.hardware.devices import Camera, CameraError, ExposureSettings
+from skinlayers.acquire.hardware.gphoto import (
     GPhotoCamera,
     detect_cameras,
     format_shutter_s,
     parse_aperture_f,
     parse_shutter_s,
 )
-from skinlayers.acquire.rig import CameraConfig
+from skinlayers.acquire.hardware.rig import CameraConfig
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="the fake gphoto2 is a POSIX script")
 

@@ -12,8 +12,8 @@ import os
 
 import pytest
 
-from skinlayers.acquire.devices import ExposureSettings
-from skinlayers.acquire.rig import CameraConfig, WheelConfig
+from skinlayers.acquire.hardware.devices import ExposureSettings
+from skinlayers.acquire.hardware.rig import CameraConfig, WheelConfig
 
 WHEEL_PORT = os.environ.get("SKINLAYERS_WHEEL_PORT")
 CAMERA = os.environ.get("SKINLAYERS_CAMERA") == "1"
@@ -21,7 +21,7 @@ CAMERA = os.environ.get("SKINLAYERS_CAMERA") == "1"
 
 @pytest.mark.skipif(not WHEEL_PORT, reason="set SKINLAYERS_WHEEL_PORT to test a real FW102C")
 def test_real_wheel_moves_and_reads_back():
-    from skinlayers.acquire.fw102c import FW102C
+    from skinlayers.acquire.hardware.fw102c import FW102C
 
     count = int(os.environ.get("SKINLAYERS_WHEEL_POSITIONS", "6"))
     with FW102C.open(WHEEL_PORT, WheelConfig(port=WHEEL_PORT, position_count=count)) as wheel:
@@ -34,7 +34,7 @@ def test_real_wheel_moves_and_reads_back():
 
 @pytest.mark.skipif(not CAMERA, reason="set SKINLAYERS_CAMERA=1 to test a real camera through gphoto2")
 def test_real_camera_configures_and_captures(tmp_path):
-    from skinlayers.acquire.gphoto import RAW_SUFFIXES, GPhotoCamera
+    from skinlayers.acquire.hardware.gphoto import RAW_SUFFIXES, GPhotoCamera
 
     config = CameraConfig(model=os.environ.get("SKINLAYERS_CAMERA_MODEL"), port=os.environ.get("SKINLAYERS_CAMERA_PORT"))
     with GPhotoCamera(config) as camera:

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from skinlayers.acquire.scene import SceneConfig, SceneError, SkinScene, load_scene, scene_from_dict
+from skinlayers.acquire.simulator.scene import SceneConfig, SceneError, SkinScene, load_scene, scene_from_dict
 from skinlayers.model.params import PARAMETER_NAMES, TABLE2
 from skinlayers.model.spectra import chromophore_spectra
 

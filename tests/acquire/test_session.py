@@ -9,14 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from skinlayers.acquire.devices import CameraError, WheelError
+from skinlayers.acquire.hardware.devices import CameraError, WheelError
 from skinlayers.formats.manifest import ManifestError, read_manifest
 from skinlayers.formats.files import file_sha256
-from skinlayers.acquire.rig import load_rig
+from skinlayers.acquire.hardware.rig import load_rig
 from skinlayers.acquire.session import AutoOperator, SessionError, plan_session, run_session
-from skinlayers.acquire.simdevices import SimulatedCamera, SimulatedWheel
-from skinlayers.acquire.simulated import SimulatedBench
-from skinlayers.acquire.simulation_settings import simulation_from_dict
+from skinlayers.acquire.hardware.simdevices import SimulatedCamera, SimulatedWheel
+from skinlayers.acquire.simulator.simulated import SimulatedBench
+from skinlayers.acquire.simulator.simulation_settings import simulation_from_dict
 
 BANDS = [{"wavelength_nm": 460, "filter_position": 3, "iso": 200}, {"wavelength_nm": 580, "filter_position": 7, "iso": 400}]
 GEOMETRY = {"cube_px": 32, "rectify_px": 160}
@@ -163,7 +163,7 @@ def test_capture_command_simulated(tmp_path, rig_file, run_cli):
 
 
 def test_capture_command_with_a_virtual_wheel_on_a_pty(tmp_path, rig_file, run_cli):
-    from skinlayers.acquire.virtual_fw102c import VirtualFW102C
+    from skinlayers.acquire.hardware.virtual_fw102c import VirtualFW102C
 
     rig, sim = rig_file
     out = tmp_path / "bench"

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import rawpy
 
-from skinlayers.acquire.devices import Camera, CameraError, ExposureSettings, FilterWheel, WheelError
-from skinlayers.acquire.rig import load_rig
-from skinlayers.acquire.simdevices import SimulatedCamera, SimulatedWheel
-from skinlayers.acquire.simulated import SimulatedBench
-from skinlayers.acquire.simulation_settings import simulation_from_dict
+from skinlayers.acquire.hardware.devices import Camera, CameraError, ExposureSettings, FilterWheel, WheelError
+from skinlayers.acquire.hardware.rig import load_rig
+from skinlayers.acquire.hardware.simdevices import SimulatedCamera, SimulatedWheel
+from skinlayers.acquire.simulator.simulated import SimulatedBench
+from skinlayers.acquire.simulator.simulation_settings import simulation_from_dict
 
 BANDS = [{"wavelength_nm": 550, "filter_position": 2, "iso": 200}, {"wavelength_nm": 650, "filter_position": 3, "iso": 400}]
 

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from skinlayers.acquire.devices import ExposureSettings
-from skinlayers.acquire.rig import load_rig
-from skinlayers.acquire.scene import scene_from_dict
-from skinlayers.acquire.simulated import SimulatedBench
-from skinlayers.acquire.simulation_settings import SimulationError, simulation_from_dict
+from skinlayers.acquire.hardware.devices import ExposureSettings
+from skinlayers.acquire.hardware.rig import load_rig
+from skinlayers.acquire.simulator.scene import scene_from_dict
+from skinlayers.acquire.simulator.simulated import SimulatedBench
+from skinlayers.acquire.simulator.simulation_settings import SimulationError, simulation_from_dict
 from skinlayers.model.illumination import Light
 from skinlayers.model.maps_io import read_maps
 from skinlayers.formats.exr import read_spectral
@@ -253,7 +253,7 @@ def test_truth_is_the_render_on_the_cube_grid_and_is_written(bench, tmp_path):
 def test_truth_weights_filter_flash_and_all_four_bayer_positions():
     """Three nodes across the band: truth = Σ_k w_k R(λ_k) with w = filter × 6000 K Planck × (R + 2G + B),
     computed here from the closed forms, each node rendered on its own."""
-    from skinlayers.acquire._optics import channel_sensitivity
+    from skinlayers.acquire.simulator._optics import channel_sensitivity
 
     rig = load_rig(bands=[BANDS[0]], geometry={"cube_px": 32, "rectify_px": 48})
     b = SimulatedBench(rig, None, small_settings(filters={"wavelength_samples": 3}), seed=2, device="cpu")

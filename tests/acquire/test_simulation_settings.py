@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from skinlayers.acquire._optics import (CHANNELS, band_spectrum, blackbody, channel_sensitivity, gaussian_blur, sensor_geometry,
+from skinlayers.acquire.simulator._optics import (CHANNELS, band_spectrum, blackbody, channel_sensitivity, gaussian_blur, sensor_geometry,
                                         vignetting)
-from skinlayers.acquire.simulation_settings import (SimulationError, SimulationSettings, load_simulation_settings,
+from skinlayers.acquire.simulator.simulation_settings import (SimulationError, SimulationSettings, load_simulation_settings,
                                                     simulation_from_dict)
 
 

@@ -13,10 +13,10 @@ pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="pseudo-terminal
 
 serial = pytest.importorskip("serial")
 
-from skinlayers.acquire.devices import WheelError  # noqa: E402
-from skinlayers.acquire.fw102c import FW102C  # noqa: E402
-from skinlayers.acquire.rig import WheelConfig  # noqa: E402
-from skinlayers.acquire.virtual_fw102c import VirtualFW102C, main  # noqa: E402
+from skinlayers.acquire.hardware.devices import WheelError  # noqa: E402
+from skinlayers.acquire.hardware.fw102c import FW102C  # noqa: E402
+from skinlayers.acquire.hardware.rig import WheelConfig  # noqa: E402
+from skinlayers.acquire.hardware.virtual_fw102c import VirtualFW102C, main  # noqa: E402
 
 # Fast timing: a half turn in 30 ms; the driver waits 0.25 s for an answer and 0.3 s for a move.
 HALF_TURN_S = 0.03
@@ -223,7 +223,7 @@ def test_bad_arguments_refused():
 
 
 def test_module_entry_prints_port_and_serves(monkeypatch, capsys):
-    """``python -m skinlayers.acquire.virtual_fw102c`` serves until Ctrl-C (interrupted here)."""
+    """``python -m skinlayers.acquire.hardware.virtual_fw102c`` serves until Ctrl-C (interrupted here)."""
     served = {}
 
     def fake_sleep(_seconds):

@@ -29,7 +29,7 @@ SIZE = int(os.environ.get("SKINLAYERS_BENCH_DESIGN_SIZE", "64"))
 
 
 def _session_errors(folder: Path, rig_path: Path | None, simulation: Path, seed: int) -> dict:
-    from skinlayers.acquire.rig import load_rig
+    from skinlayers.acquire.hardware.rig import load_rig
     from skinlayers.calibration import calibrate_session
     from skinlayers.demo import accuracy_against_truth, simulate_session
     from skinlayers.truths import MIN_RECTIFY_PX, demo_scene
@@ -48,8 +48,8 @@ def _session_errors(folder: Path, rig_path: Path | None, simulation: Path, seed:
 
 
 def test_chosen_bands_against_the_rigs_through_the_pipeline(tmp_path):
-    from skinlayers.acquire.rig import load_rig
-    from skinlayers.acquire.simulation_settings import load_simulation_settings
+    from skinlayers.acquire.hardware.rig import load_rig
+    from skinlayers.acquire.simulator.simulation_settings import load_simulation_settings
     from skinlayers.band_design import Radiometry, default_catalogue, design_bands, write_design
     from skinlayers.truths import session_rig
 

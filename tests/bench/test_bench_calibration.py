@@ -35,8 +35,8 @@ def _session(tmp_path: Path) -> Path:
     if given:
         return Path(given)
     from skinlayers.acquire.session import AutoOperator, run_session
-    from skinlayers.acquire.simdevices import SimulatedCamera, SimulatedWheel
-    from skinlayers.acquire.simulated import SimulatedBench
+    from skinlayers.acquire.hardware.simdevices import SimulatedCamera, SimulatedWheel
+    from skinlayers.acquire.simulator.simulated import SimulatedBench
 
     bench = SimulatedBench(seed=0, device="cpu")
     wheel = SimulatedWheel(bench.rig.wheel.position_count, time_scale=0.0)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from skinlayers.acquire.scene import SkinScene, scene_from_dict
+from skinlayers.acquire.simulator.scene import SkinScene, scene_from_dict
 from skinlayers.model import PARAMETER_NAMES, ModelSettings
 from skinlayers.model.illumination import Light
 from skinlayers.model.maps import SkinMaps

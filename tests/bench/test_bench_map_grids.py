@@ -50,7 +50,7 @@ def _session(folder: Path, size: int) -> Path:
     import yaml
 
     from skinlayers.acquire.cli import capture
-    from skinlayers.acquire.rig import load_rig
+    from skinlayers.acquire.hardware.rig import load_rig
     from skinlayers.calibration.pipeline import calibrate_session
     from skinlayers.truths import demo_scene
 

@@ -16,9 +16,9 @@ import time
 
 import pytest
 
-from skinlayers.acquire.devices import ExposureSettings
-from skinlayers.acquire.simdevices import SimulatedCamera, SimulatedWheel
-from skinlayers.acquire.simulated import SimulatedBench
+from skinlayers.acquire.hardware.devices import ExposureSettings
+from skinlayers.acquire.hardware.simdevices import SimulatedCamera, SimulatedWheel
+from skinlayers.acquire.simulator.simulated import SimulatedBench
 
 pytestmark = pytest.mark.bench
 

@@ -27,7 +27,7 @@ import yaml
 
 from bench_io import out_dir, write_csv
 
-from skinlayers.acquire.rig import load_rig
+from skinlayers.acquire.hardware.rig import load_rig
 from skinlayers.calibration import calibrate_session
 from skinlayers.demo import accuracy_against_truth, simulate_session
 from skinlayers.truths import MIN_RECTIFY_PX, demo_scene
@@ -79,7 +79,7 @@ def _session(folder, seed: int) -> dict:
 
 def _kept(seed: int):
     """A session captured by the first test (skip if absent): its folder, calibrated cube and scene."""
-    from skinlayers.acquire.scene import scene_from_dict
+    from skinlayers.acquire.simulator.scene import scene_from_dict
     from skinlayers.formats.cube import read_cube
 
     folder = _folder(seed)
@@ -90,7 +90,7 @@ def _kept(seed: int):
 
 def _own_render(rig, scene, seed: int, overrides: dict) -> torch.Tensor:
     """The model's own render of the truth maps (the simulator's diffusion path with these model settings)."""
-    from skinlayers.acquire.simulated import SimulatedBench
+    from skinlayers.acquire.simulator.simulated import SimulatedBench
     from skinlayers.model.settings import ModelSettings
 
     return SimulatedBench(rig, scene, seed=seed, model_settings=ModelSettings(**overrides), device="cpu").truth_reflectance().float()

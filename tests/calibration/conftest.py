@@ -302,11 +302,11 @@ def build_simulated_session(
     flash with the sensor's shot and read noise made negligible (×10⁵ electrons at the same DN), for
     the noise floor. ``wavelength_samples`` 1: the band centre (the truth is made with the same nodes).
     """
-    from skinlayers.acquire.rig import load_rig
+    from skinlayers.acquire.hardware.rig import load_rig
     from skinlayers.acquire.session import AutoOperator, run_session
-    from skinlayers.acquire.simdevices import SimulatedCamera, SimulatedWheel
-    from skinlayers.acquire.simulated import SimulatedBench
-    from skinlayers.acquire.simulation_settings import simulation_from_dict
+    from skinlayers.acquire.hardware.simdevices import SimulatedCamera, SimulatedWheel
+    from skinlayers.acquire.simulator.simulated import SimulatedBench
+    from skinlayers.acquire.simulator.simulation_settings import simulation_from_dict
     from skinlayers.formats.exr import read_exr
 
     by_nm = {b.wavelength_nm: b for b in load_rig().bands}
@@ -331,7 +331,7 @@ def build_simulated_session(
 
 def predicted_noise(session: Path, band: dict, cube_px: int, rectify_px: int, mask: np.ndarray, sensor, seed=0) -> float:
     """The RMS noise a band of the cube carries (reflectance, over ``mask``), predicted from the raw frames
-    and the simulator's sensor model (EMVA 1288, ``acquire/_sensor.py``): each photosite's variance
+    and the simulator's sensor model (EMVA 1288, ``acquire/simulator/_sensor.py``): each photosite's variance
     μ_e/g² + (σ_e/g)² + σ_DN² + 1/12 in DN², g electrons per DN at the frame's ISO; a superpixel's is the
     sum of its four; the ratio's R² (var S/S² + var F/F²) × the band's scale². A Gaussian field of that
     variance goes through the calibration's own rectification and box filter. ``band``: the band's entry

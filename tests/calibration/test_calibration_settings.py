@@ -60,7 +60,7 @@ def test_gray_card_level_refuses_a_clipped_or_dark_card():
 
 def test_band_factors_follow_the_switches():
     from skinlayers.formats.manifest import Exposure
-    from skinlayers.acquire.rig import load_rig
+    from skinlayers.acquire.hardware.rig import load_rig
 
     rig = load_rig(targets={"spectralon_reflectance": {430: 0.98, 670: 0.99}})
     slow, fast = Exposure(iso=400, shutter_s=0.01, aperture_f=10), Exposure(iso=800, shutter_s=0.01, aperture_f=10)

@@ -206,7 +206,7 @@ def test_without_the_flat_field_the_vignetting_stays(clean, calibrated):
         unit = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
         h = cv2.getPerspectiveTransform(unit, _true_corners(clean, w).astype(np.float32))
         raw = cv2.perspectiveTransform(uv, h).reshape(cube_px, cube_px, 2)
-        # the simulator's vignetting at each cube pixel, 1 − v r²/r_corner² (acquire/_optics.py)
+        # the simulator's vignetting at each cube pixel, 1 − v r²/r_corner² (acquire/simulator/_optics.py)
         fall = 1 - strength * ((raw[..., 0] - cu) ** 2 + (raw[..., 1] - cv_) ** 2) / (cu**2 + cv_**2)
         fall = fall[mask] / np.median(fall[mask])
         ratio = ratio / np.median(ratio)
@@ -218,7 +218,7 @@ def test_without_the_black_frame_a_stray_offset_stays(clean, calibrated, tmp_pat
     # every frame (the black one too) carries 100 DN the raw tags' black level does not know
     import rawpy
 
-    from skinlayers.acquire.dng import write_dng
+    from skinlayers.acquire.hardware.dng import write_dng
 
     folder = tmp_path / "offset"
     shutil.copytree(clean.path, folder)

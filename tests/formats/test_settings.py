@@ -81,9 +81,9 @@ def test_every_parts_errors_share_the_base():
 
 
 def _loaders():
-    from skinlayers.acquire.rig import RigError, load_rig
-    from skinlayers.acquire.scene import SceneError, load_scene
-    from skinlayers.acquire.simulation_settings import SimulationError, load_simulation_settings
+    from skinlayers.acquire.hardware.rig import RigError, load_rig
+    from skinlayers.acquire.simulator.scene import SceneError, load_scene
+    from skinlayers.acquire.simulator.simulation_settings import SimulationError, load_simulation_settings
     from skinlayers.calibration import SettingsFileError, load_calibration_settings
     from skinlayers.model import SettingsError as ModelSettingsError
     from skinlayers.model import load_model_settings

@@ -67,7 +67,7 @@ def test_tiles_refuse_other_lights(renderer):
 
 
 def _scene_maps(size: int, mm_per_pixel: float) -> SkinMaps:
-    from skinlayers.acquire.scene import SkinScene, load_scene
+    from skinlayers.acquire.simulator.scene import SkinScene, load_scene
 
     wavelengths = torch.arange(400.0, 701.0, 25.0, dtype=torch.float64)
     return SkinScene(load_scene(None), 0).maps(mm_per_pixel, size, wavelengths)

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from skinlayers.acquire.scene import SkinScene, VariationConfig, scene_from_dict
+from skinlayers.acquire.simulator.scene import SkinScene, VariationConfig, scene_from_dict
 from skinlayers.formats.cube import Cube, CubeHeader
 from skinlayers.model import ModelSettings
 from skinlayers.model.illumination import Light

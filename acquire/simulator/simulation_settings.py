@@ -12,10 +12,10 @@ from typing import Annotated, Literal, Optional
 
 from pydantic import Field, model_validator
 
-from ..formats.errors import SettingsError
-from ..formats.settings import Strict, load_settings, validate_settings
-from ..model.settings import MAX_PHOTONS, MIN_PHOTONS
-from ..model.transport import check_physics_options
+from ...formats.errors import SettingsError
+from ...formats.settings import Strict, load_settings, validate_settings
+from ...model.settings import MAX_PHOTONS, MIN_PHOTONS
+from ...model.transport import check_physics_options
 
 __all__ = ["ChannelCurve", "SimulationError", "SimulationSettings", "load_simulation_settings", "simulation_from_dict",
            "truth_overrides"]
@@ -178,7 +178,7 @@ class SimulationSettings(Strict):
 
 
 def default_simulation_path() -> Path:
-    from ..configs import config_path  # noqa: PLC0415
+    from ...configs import config_path  # noqa: PLC0415
 
     return config_path("simulation.yaml")
 

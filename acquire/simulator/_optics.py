@@ -116,7 +116,7 @@ def gaussian_blur(image: torch.Tensor, sigma_px: float) -> torch.Tensor:
     x = F.pad(image[None], (r, r, r, r), mode="replicate")[0]
     h, w = image.shape[-2:]
     # weighted sums of shifted views: faster on the CPU than a grouped conv2d
-    # (docs/calibration.md, "From acquire/_optics.py")
+    # (docs/calibration.md, "From acquire/simulator/_optics.py")
     rows = sum(k[i] * x[:, :, i:i + w] for i in range(2 * r + 1))
     return sum(k[i] * rows[:, i:i + h, :] for i in range(2 * r + 1))
 

@@ -15,7 +15,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..formats.files import atomic_write
+from ...formats.files import atomic_write
 
 __all__ = ["DNG_BIT_DEPTHS", "write_dng"]
 

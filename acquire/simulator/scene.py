@@ -22,12 +22,12 @@ import numpy as np
 import torch
 from pydantic import AfterValidator, Field, model_validator
 
-from ..model.maps import SkinMaps
-from ..model.params import PARAMETER_BOUNDS, PARAMETER_NAMES, TABLE2
-from ..formats.errors import SettingsError
-from ..formats.settings import Strict, load_settings, validate_settings
-from ..model.settings import SkinOptics
-from ..model.spectra import chromophore_spectra
+from ...model.maps import SkinMaps
+from ...model.params import PARAMETER_BOUNDS, PARAMETER_NAMES, TABLE2
+from ...formats.errors import SettingsError
+from ...formats.settings import Strict, load_settings, validate_settings
+from ...model.settings import SkinOptics
+from ...model.spectra import chromophore_spectra
 
 __all__ = ["SceneConfig", "SceneError", "SkinScene", "load_scene", "scene_from_dict"]
 
@@ -130,7 +130,7 @@ class SceneConfig(Strict):
 
 
 def default_scene_path() -> Path:
-    from ..configs import config_path  # noqa: PLC0415
+    from ...configs import config_path  # noqa: PLC0415
 
     return config_path("scene.yaml")
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..formats.rig import (
+from ...formats.rig import (
     BandConfig,
     CameraConfig,
     GeometryConfig,
@@ -19,14 +19,14 @@ from ..formats.rig import (
     WheelConfig,
     rig_from_dict,
 )
-from ..formats.settings import load_settings
+from ...formats.settings import load_settings
 
 __all__ = ["BandConfig", "CameraConfig", "GeometryConfig", "PolarizationConfig", "RigConfig", "RigError",
            "TargetsConfig", "WheelConfig", "default_rig_path", "load_rig", "rig_from_dict"]
 
 
 def default_rig_path() -> Path:
-    from ..configs import config_path  # noqa: PLC0415
+    from ...configs import config_path  # noqa: PLC0415
 
     return config_path("rig.yaml")
 

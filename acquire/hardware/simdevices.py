@@ -18,7 +18,7 @@ from .devices import EXPOSURE_FIELDS, Camera, CameraError, ExposureSettings, Fil
 from .dng import write_dng
 
 if TYPE_CHECKING:
-    from .simulated import SimulatedBench
+    from ..simulator.simulated import SimulatedBench
 
 __all__ = ["SimulatedCamera", "SimulatedWheel"]
 

@@ -30,20 +30,20 @@ from typing import Callable, Literal, Optional
 import numpy as np
 import torch
 
-from ..formats.exr import write_spectral
-from ..formats.files import atomic_write
-from ..formats.resources import require_memory
-from ..model.illumination import Light
-from ..model.maps import SkinMaps
-from ..model.maps_io import write_maps
-from ..model.renderer import SkinRenderer, render_bytes
-from ..model.transport import BYTES_PER_PHOTON, TransportRenderer
-from ..model.settings import ModelSettings
+from ...formats.exr import write_spectral
+from ...formats.files import atomic_write
+from ...formats.resources import require_memory
+from ...model.illumination import Light
+from ...model.maps import SkinMaps
+from ...model.maps_io import write_maps
+from ...model.renderer import SkinRenderer, render_bytes
+from ...model.transport import BYTES_PER_PHOTON, TransportRenderer
+from ...model.settings import ModelSettings
 from ._optics import (BandSpectrum, CameraGeometry, band_spectrum, bilinear, gaussian_blur, sample_points, sensor_geometry,
                       to_subject, vignetting)
 from ._sensor import e_per_dn, expose, mosaic
-from .devices import ExposureSettings
-from .rig import BandConfig, RigConfig, load_rig, rig_from_dict
+from ..hardware.devices import ExposureSettings
+from ..hardware.rig import BandConfig, RigConfig, load_rig, rig_from_dict
 from .scene import SceneConfig, SkinScene, load_scene
 from .simulation_settings import SimulationError, SimulationSettings, load_simulation_settings
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence, TypeVar
 
-from ..formats.errors import SkinlayersError
+from ...formats.errors import SkinlayersError
 
 __all__ = ["Camera", "CameraError", "DeviceError", "ExposureSettings", "FilterWheel", "WheelError"]
 

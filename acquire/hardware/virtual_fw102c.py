@@ -22,7 +22,7 @@ for the next ``times`` exchanges they apply to:
 * ``"slow_move"``: the move takes ``slow_move_s`` instead (``pos=n`` only);
 * ``"wrong_position"``: the wheel stops one position past the target (``pos=n`` only).
 
-At the bench: ``python -m skinlayers.acquire.virtual_fw102c [--positions 6] [--fault silent:2]``
+At the bench: ``python -m skinlayers.acquire.hardware.virtual_fw102c [--positions 6] [--fault silent:2]``
 prints its port and serves until Ctrl-C. POSIX only (pseudo-terminals).
 """
 
@@ -274,7 +274,7 @@ def _fault_arg(text: str) -> tuple[str, Optional[int]]:
 def main(argv: Optional[list[str]] = None) -> None:
     """Serve a virtual FW102C on a pty until Ctrl-C; print the port to give ``--wheel-port``."""
     parser = argparse.ArgumentParser(
-        prog="python -m skinlayers.acquire.virtual_fw102c",
+        prog="python -m skinlayers.acquire.hardware.virtual_fw102c",
         description="Serve a virtual Thorlabs FW102C filter wheel on a pseudo-terminal until Ctrl-C.",
     )
     parser.add_argument(

@@ -1,0 +1,1 @@
+"""The rig and its devices: the rig's description, the drivers' base classes (filter wheel, camera), the Thorlabs FW102C over serial and a gphoto2 camera, their simulated twins and a virtual FW102C, and the DNG writer the twins' frames go through."""
