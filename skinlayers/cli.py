@@ -14,11 +14,11 @@ import sys
 
 import typer
 
-from . import band_design
-from . import batch as batch_cli
 from . import demo as demo_cli
-from . import stability as stability_analysis
-from . import tradeoff as tradeoff_analysis
+from .analyses import band_design
+from .analyses import stability as stability_analysis
+from .analyses import tradeoff as tradeoff_analysis
+from .studies import batch as batch_cli
 from .acquire import cli as acquire_cli
 from .calibration import cli as calibration_cli
 from .formats.errors import SkinlayersError

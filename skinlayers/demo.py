@@ -229,7 +229,7 @@ def _write_setup(folder: Path, size: int, scene: Path | None):
     rig.yaml and scene.yaml; returns the rig and the scene file."""
     import yaml  # noqa: PLC0415
 
-    from .truths import demo_scene, session_rig  # noqa: PLC0415
+    from .analyses.truths import demo_scene, session_rig  # noqa: PLC0415
 
     rig = session_rig(size)
     (folder / "rig.yaml").write_text(yaml.safe_dump(rig.model_dump(mode="json"), sort_keys=False))
@@ -241,11 +241,11 @@ def _write_setup(folder: Path, size: int, scene: Path | None):
 
 def _shipped_renders(truth: dict, seed: int, size: int, scene_given: bool) -> dict | None:
     """With ``--physics transport`` on the demo's scene: the shipped Monte Carlo of this seed and size
-    (``skinlayers.truths``), photographed anew instead of walking the photons again; else None. Sets
+    (``skinlayers.analyses.truths``), photographed anew instead of walking the photons again; else None. Sets
     ``truth["photons"]`` to the shipped render's, which the session's truth record then states."""
     if truth.get("physics") != "transport" or scene_given:
         return None
-    from .truths import shipped_session  # noqa: PLC0415
+    from .analyses.truths import shipped_session  # noqa: PLC0415
 
     shipped = shipped_session(seed, size, truth.get("photons"))
     if shipped is None:

@@ -17,7 +17,7 @@ III_INTERIOR = (0.005364, 0.151566, 0.001441, 0.000081, 0.004674)  # C_m, β_m, 
 
 def test_the_radiometry_chooses_the_rigs_isos_and_predicts_its_noise():
     from skinlayers.acquire.hardware.rig import load_rig
-    from skinlayers.band_design import Filter, Radiometry, band_jacobian
+    from skinlayers.analyses.band_design import Filter, Radiometry, band_jacobian
 
     rig, radiometry = load_rig(), Radiometry()
     filters = [Filter(b.wavelength_nm, b.fwhm_nm) for b in rig.bands]
@@ -29,7 +29,7 @@ def test_the_radiometry_chooses_the_rigs_isos_and_predicts_its_noise():
 
 
 def test_the_band_jacobian_is_the_derivative_of_the_band_reflectance():
-    from skinlayers.band_design import Filter, band_jacobian
+    from skinlayers.analyses.band_design import Filter, band_jacobian
 
     filters = [Filter(450.0, 10.0), Filter(560.0, 20.0), Filter(690.0, 10.0)]
     skins = torch.tensor([III_INTERIOR, (0.03, 0.6, 0.003, 0.0004, 0.01)], dtype=torch.float64)
@@ -63,7 +63,7 @@ def _constructed_information() -> torch.Tensor:
 
 
 def test_the_search_finds_the_known_optimum():
-    from skinlayers.band_design import Criterion, exchange_search, exhaustive_search
+    from skinlayers.analyses.band_design import Criterion, exchange_search, exhaustive_search
 
     info, per_pixel = _constructed_information(), torch.ones(5, dtype=torch.float64)
     for criterion in (Criterion(info, per_pixel, "targets"), Criterion(info, per_pixel, "rig", reference=[0, 5, 6])):
@@ -74,8 +74,8 @@ def test_the_search_finds_the_known_optimum():
 def test_counting_up_by_exchange_finds_the_known_optimum(monkeypatch):
     """``search_counts`` by the exchange alone (the exhaustive limit set to nothing), two random starts: the
     known optimum of four, reached at five from the best four extended (a superset of the optimum)."""
-    from skinlayers import band_design
-    from skinlayers.band_design import Criterion, search_counts
+    from skinlayers.analyses import band_design
+    from skinlayers.analyses.band_design import Criterion, search_counts
 
     monkeypatch.setattr(band_design, "EXHAUSTIVE_LIMIT", 0)
     monkeypatch.setattr(band_design, "EXCHANGE_STARTS", 2)
@@ -86,7 +86,7 @@ def test_counting_up_by_exchange_finds_the_known_optimum(monkeypatch):
 
 
 def test_the_exchange_agrees_with_the_exhaustive_search_on_random_catalogues():
-    from skinlayers.band_design import Criterion, exchange_search, exhaustive_search
+    from skinlayers.analyses.band_design import Criterion, exchange_search, exhaustive_search
 
     generator = torch.Generator().manual_seed(3)
     shared = torch.tensor([1.0, 50.0, 1.0, 400.0, 8.0], dtype=torch.float64)
@@ -102,7 +102,7 @@ def test_the_exchange_agrees_with_the_exhaustive_search_on_random_catalogues():
 def test_the_model_errors_bias_is_the_fits_least_squares_answer_to_it():
     """With the noise negligible, a set's expected error is the square of the unweighted least-squares fit
     of the linear model to the model's error alone (the fit weighs its bands alike)."""
-    from skinlayers.band_design import Criterion, FilterTerms, _outer
+    from skinlayers.analyses.band_design import Criterion, FilterTerms, _outer
 
     generator = torch.Generator().manual_seed(5)
     jac = torch.randn(2, 8, 5, generator=generator, dtype=torch.float64)  # (M, F, 5)
@@ -117,7 +117,7 @@ def test_the_model_errors_bias_is_the_fits_least_squares_answer_to_it():
 
 def test_a_filter_the_model_misses_is_left_out():
     """Filters 1 and 7 inform C_m alike; the model misses what filter 1 sees (a bias): the search takes 7."""
-    from skinlayers.band_design import Criterion, FilterTerms, _outer, exhaustive_search
+    from skinlayers.analyses.band_design import Criterion, FilterTerms, _outer, exhaustive_search
 
     jac = torch.zeros(1, 8, 5, dtype=torch.float64)
     for f, k in ((1, 0), (2, 1), (3, 2), (4, 4), (7, 0)):
@@ -134,9 +134,9 @@ def test_a_filter_the_model_misses_is_left_out():
 def test_the_model_error_is_measured_where_the_skin_varies_and_kept(tmp_path, monkeypatch):
     """The simulator's render against the fit's at the same maps: where blood absorbs (560 nm) the skin's
     variation within a pixel shows; at 700 nm little; the measurement is cached and read back."""
-    from skinlayers import band_discrepancy
+    from skinlayers.analyses import band_discrepancy
     from skinlayers.acquire.hardware.rig import load_rig
-    from skinlayers.band_design import Filter
+    from skinlayers.analyses.band_design import Filter
 
     monkeypatch.setenv("SKINLAYERS_CACHE", str(tmp_path))
     filters = [Filter(450.0, 10.0), Filter(560.0, 10.0), Filter(700.0, 10.0)]
@@ -166,7 +166,7 @@ def test_an_rgb_camera_cannot_determine_the_five_maps():
     """DWRR08 §6.1: five parameters a point, three channels. Under the same flash and noise model, the RGB
     camera leaves the maps it shares over cells undetermined (a uniform cell adds no new direction), while
     the rig's nine bands determine every map."""
-    from skinlayers.band_design import (UNDETERMINED_SD, Criterion, Filter, Radiometry, _joined, filter_terms, rgb_terms,
+    from skinlayers.analyses.band_design import (UNDETERMINED_SD, Criterion, Filter, Radiometry, _joined, filter_terms, rgb_terms,
                                         shared_pixels)
 
     radiometry = Radiometry()
@@ -183,7 +183,7 @@ def test_an_rgb_camera_cannot_determine_the_five_maps():
 def test_the_shared_bound_is_the_inverse_of_the_whole_fisher_matrix():
     """n pixels of one skin, β_m, C_bc and C_hd shared by all: the variances equal the diagonal of the
     inverse of the n-pixel information matrix, built explicitly."""
-    from skinlayers.band_design import bound_variance
+    from skinlayers.analyses.band_design import bound_variance
 
     n = 6
     generator = torch.Generator().manual_seed(1)
@@ -206,7 +206,7 @@ def test_the_shared_bound_is_the_inverse_of_the_whole_fisher_matrix():
 def test_the_nested_bound_is_the_inverse_of_the_whole_fisher_matrix():
     """Eight pixels of one skin: C_m and C_he per pixel, C_hd shared by pairs, β_m by fours, C_bc by all:
     the variances equal the diagonal of the inverse of the whole information matrix, built explicitly."""
-    from skinlayers.band_design import bound_variance
+    from skinlayers.analyses.band_design import bound_variance
 
     generator = torch.Generator().manual_seed(2)
     j = torch.randn(9, 5, generator=generator, dtype=torch.float64)
@@ -235,7 +235,7 @@ def test_the_nested_bound_is_the_inverse_of_the_whole_fisher_matrix():
     ("centre_nm,fwhm_nm\n450,10\n450,20\n", "share a centre"),
 ])
 def test_a_bad_catalogue_is_refused_naming_the_line(tmp_path, text, words):
-    from skinlayers.band_design import read_catalogue
+    from skinlayers.analyses.band_design import read_catalogue
     from skinlayers.formats.errors import InputError
 
     path = tmp_path / "filters.csv"
@@ -269,7 +269,7 @@ def test_the_command_weighs_the_model_error_by_default(tmp_path, run_cli, monkey
     modelled) enters the criterion, the record says so, and that filter is left out."""
     import json
 
-    from skinlayers import band_discrepancy
+    from skinlayers.analyses import band_discrepancy
 
     catalogue = tmp_path / "filters.csv"
     catalogue.write_text("centre_nm,fwhm_nm\n" + "".join(f"{c},10\n" for c in range(420, 660, 20)))  # 12 filters
@@ -291,7 +291,7 @@ def test_the_command_weighs_the_model_error_by_default(tmp_path, run_cli, monkey
 
 
 def test_a_design_is_not_written_over_an_earlier_one(tmp_path):
-    from skinlayers.band_design import BandDesign, Filter, SearchResult, write_design
+    from skinlayers.analyses.band_design import BandDesign, Filter, SearchResult, write_design
     from skinlayers.formats.outputs import OutputExistsError
 
     design = BandDesign([Filter(450.0, 10.0)], [200], "rig", SearchResult((0,), 0.9, "exhaustive", 1, 0.0),

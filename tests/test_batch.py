@@ -27,7 +27,7 @@ def made_sessions(tmp_path_factory) -> Path:
 
     from skinlayers.acquire.hardware.rig import load_rig
     from skinlayers.demo import simulate_session
-    from skinlayers.truths import demo_scene
+    from skinlayers.analyses.truths import demo_scene
 
     folder = tmp_path_factory.mktemp("made")
     by_nm = {b.wavelength_nm: b for b in load_rig().bands}
@@ -50,7 +50,7 @@ def study(made_sessions, tmp_path) -> Path:
 def client():
     from distributed import Client
 
-    from skinlayers.batch import local_cluster
+    from skinlayers.studies.batch import local_cluster
 
     with local_cluster(2) as cluster, Client(cluster) as c:
         yield c
@@ -69,8 +69,8 @@ def _leftovers(study: Path) -> list[Path]:
 def test_a_corrupt_session_fails_alone_and_only_it_is_retried(study, tmp_path, client, run_cli):
     import json
 
-    from skinlayers.batch import BatchOptions, read_study, reconstruction_dir, run_batch
-    from skinlayers.study import session_summary
+    from skinlayers.studies.batch import BatchOptions, read_study, reconstruction_dir, run_batch
+    from skinlayers.studies.study import session_summary
 
     bad = _corrupt(study / "s2")
     sessions = read_study(study)
@@ -100,7 +100,7 @@ def test_a_corrupt_session_fails_alone_and_only_it_is_retried(study, tmp_path, c
 
 
 def test_a_worker_killed_during_a_task_costs_no_session(study, tmp_path, client):
-    from skinlayers.batch import BatchOptions, read_study, reconstruction_dir, run_batch
+    from skinlayers.studies.batch import BatchOptions, read_study, reconstruction_dir, run_batch
 
     sessions = read_study(study)
     assert set(client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_")).values()) == {None}  # batch.WORKER_ENVIRON
@@ -135,7 +135,7 @@ def _busy_worker(client, timeout_s: float = 60.0) -> str:
 
 
 def test_the_study_statistics_on_a_constructed_table():
-    from skinlayers.study import group_statistics, principal_components, trimmed_mean, visit_changes
+    from skinlayers.studies.study import group_statistics, principal_components, trimmed_mean, visit_changes
 
     assert trimmed_mean([*range(1, 10), 1000.0]) == pytest.approx(5.5)  # the largest and the smallest of ten cut
     rows = [{"session": f"v{i}", "subject": "a" if i < 2 else "b", "site": "arm", "date": f"2026-0{i + 1}-01",
@@ -175,7 +175,7 @@ def test_bad_options_are_refused_before_any_worker_starts(study, run_cli):
 def test_a_csv_study_keeps_its_columns_and_groups_by_them(tmp_path):
     import json
 
-    from skinlayers.batch import SessionOutcome, read_study, write_study
+    from skinlayers.studies.batch import SessionOutcome, read_study, write_study
 
     (tmp_path / "listing.csv").write_text("session,subject,skin_type\nA/v1,A,II\nA/v2,A,II\nB/v1,,V\n")
     sessions = read_study(tmp_path / "listing.csv")
@@ -197,7 +197,7 @@ def test_a_csv_study_keeps_its_columns_and_groups_by_them(tmp_path):
 
 
 def test_a_step_cut_short_before_its_marker_is_run_again(study):
-    from skinlayers.batch import BatchOptions, process_session, read_study
+    from skinlayers.studies.batch import BatchOptions, process_session, read_study
 
     stale = study / "s1_calibrated" / "cube.exr"  # moved into place; the marker never written
     stale.parent.mkdir()
@@ -211,7 +211,7 @@ def test_the_statistics_survive_what_a_study_holds():
     """A calibration alone (no maps), a session without subject or site, a session with a map not finite."""
     import json
 
-    from skinlayers.study import correlations, study_record, visit_changes
+    from skinlayers.studies.study import correlations, study_record, visit_changes
 
     maps = ("C_m", "beta_m", "C_he", "C_bc", "C_hd")
     stats = lambda k: {"pixels": 10, **{f"{m}_trimmed_mean": float(k + j) * (k + 1) for j, m in enumerate(maps)}}  # noqa: E731
@@ -227,7 +227,7 @@ def test_the_statistics_survive_what_a_study_holds():
 @pytest.mark.parametrize("header, words", [("session,site,site", "site"), ("session,status", "status"),
                                            ("session,C_m_median", "C_m_median")])
 def test_a_study_list_may_not_repeat_or_take_the_tables_columns(tmp_path, header, words):
-    from skinlayers.batch import read_study
+    from skinlayers.studies.batch import read_study
     from skinlayers.formats.errors import InputError
 
     listing = tmp_path / "study.csv"

@@ -126,7 +126,7 @@ def test_the_shipped_monte_carlo_is_photographed_instead_of_rendered_again():
     """--physics transport on the demo's scene at the size and seed of a shipped Monte Carlo session takes its
     render (minutes of photons saved); any other seed, size, scene or photon count walks its own."""
     from skinlayers.demo import _shipped_renders
-    from skinlayers.truths import SESSION_PX_64, SESSION_SEEDS_64, session_renders
+    from skinlayers.analyses.truths import SESSION_PX_64, SESSION_SEEDS_64, session_renders
 
     seed = SESSION_SEEDS_64[0]
     record, renders = session_renders(seed)

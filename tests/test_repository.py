@@ -263,10 +263,10 @@ MAX_MODULE_LINES = 500
 ROOM_MODULES = 12
 #: Modules and folders still over the limits, with today's size as a ceiling (issue 57 empties both).
 _MODULES_TOO_LONG_FOR_NOW: dict[str, int] = {
-    "skinlayers/band_design.py": 696, "skinlayers/tradeoff.py": 632,
+    "skinlayers/analyses/band_design.py": 696, "skinlayers/analyses/tradeoff.py": 632,
     "model/layer_totals.py": 626,
 }
-_ROOMS_TOO_FULL_FOR_NOW: dict[str, int] = {"model": 27, "skinlayers": 14}
+_ROOMS_TOO_FULL_FOR_NOW: dict[str, int] = {"model": 27}
 
 
 def _rooms() -> dict[str, int]:
@@ -299,3 +299,51 @@ def test_no_room_holds_more_than_twelve_modules():
     assert not full, f"folders of more than {ROOM_MODULES} modules (or more than listed): {full}"
     emptied = sorted(k for k in _ROOMS_TOO_FULL_FOR_NOW if rooms.get(k, 0) <= ROOM_MODULES)
     assert not emptied, f"now within {ROOM_MODULES} modules: take them off _ROOMS_TOO_FULL_FOR_NOW: {emptied}"
+
+
+#: Paths the docs named before the face's analyses had rooms, kept working by thin modules.
+_KEPT_PATHS = {"skinlayers.batch": ("run_batch", "WORKER_ENVIRON"), "skinlayers.tradeoff": ("run_tradeoff",),
+               "skinlayers.truths": ("main", "shipped_session")}
+
+
+#: A dotted name ending in one of these is a file (``skinlayers.yaml``), not an import path.
+_FILE_SUFFIXES = {"yaml", "json", "csv", "exr", "png", "md", "py", "txt", "npz", "toml"}
+
+
+def _documented_paths() -> set[str]:
+    """Every dotted ``skinlayers.…`` path the README, docs/ and configs/ name."""
+    found = set()
+    for path in [ROOT / "README.md", *(ROOT / "docs").glob("*.md"), *(ROOT / "configs").glob("*.yaml")]:
+        found.update(m for m in re.findall(r"\bskinlayers(?:\.[A-Za-z_][A-Za-z0-9_]*)+", path.read_text())
+                     if m.rsplit(".", 1)[-1] not in _FILE_SUFFIXES)
+    return found
+
+
+def _resolves(dotted: str) -> bool:
+    """Whether ``dotted`` is a module, or a name reached by attributes from the longest module in it."""
+    import importlib
+
+    parts = dotted.split(".")
+    for cut in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:cut]))
+        except ImportError:
+            continue
+        for name in parts[cut:]:
+            obj = getattr(obj, name, None)
+        return obj is not None
+    return False
+
+
+def test_every_documented_import_path_resolves():
+    """Each ``skinlayers.a.b.c`` the docs name is a module, or a name in one (issue 57: moving a module
+    into a room must not leave the docs pointing at nothing); the paths named before the rooms still work."""
+    import importlib
+
+    paths = _documented_paths()
+    broken = sorted(p for p in paths if not _resolves(p))
+    assert len(paths) > 20 and not broken, broken
+    assert not _resolves("skinlayers.reconstruct.fit.fit_cube")  # moved to a room: the check can fail
+    for module, names in _KEPT_PATHS.items():
+        kept = importlib.import_module(module)
+        assert all(hasattr(kept, n) for n in names), module

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from skinlayers.formats.cube import Cube, CubeHeader
-from skinlayers.stability import (COLUMNS, CONDITIONS, METHODS, RESIDUAL_AT_NOISE, SIGMA_COVER, StabilityPlan, _perturb_cube,
+from skinlayers.analyses.stability import (COLUMNS, CONDITIONS, METHODS, RESIDUAL_AT_NOISE, SIGMA_COVER, StabilityPlan, _perturb_cube,
                                   cell_verdict, make_plan, run_stability, summarise)
 from skinlayers.reconstruct.diagnosis.checks import (MAP_TARGETS, RESIDUAL_NOISE_LIMIT, SMOOTH_BAND_RATIO, precision_notes, residual_notes,
                                           smooth_band_notes)
@@ -189,7 +189,7 @@ def test_with_the_calibrations_card_check_switched_off_a_wrong_certificate_goes_
 
 
 def test_a_wrong_certificate_is_recorded_at_its_band_only():
-    from skinlayers.stability import _recorded_rig
+    from skinlayers.analyses.stability import _recorded_rig
 
     manifest = {"rig": _default_rig()}
     changed = _recorded_rig(manifest, "certificate 430 nm", -0.08)["rig"]["targets"]["spectralon_reflectance"]
@@ -236,8 +236,8 @@ def test_the_same_seed_gives_the_same_cells_twice(small, tmp_path):
 
 
 def test_a_cell_coloured_by_its_worst_target_hair_flagged_pixels_included():
-    from skinlayers.stability import TARGETS, names_cause
-    from skinlayers.stability_charts import CellTargets, worst_ratio
+    from skinlayers.analyses.stability import TARGETS, names_cause
+    from skinlayers.analyses.stability_charts import CellTargets, worst_ratio
 
     targets = CellTargets(TARGETS, RESIDUAL_AT_NOISE, SIGMA_COVER, names_cause)
     row = _row(sigma_cover_flagged="")

@@ -11,7 +11,7 @@ import time
 import pytest
 import torch
 
-from skinlayers.sweep import PeakMemory, SweepTable, pareto_front, time_to_front
+from skinlayers.analyses.sweep import PeakMemory, SweepTable, pareto_front, time_to_front
 
 
 def test_pareto_front_on_a_constructed_example():
@@ -91,7 +91,7 @@ def test_peak_memory_sees_a_block_that_allocates():
 
 def test_an_analysis_device_is_cpu_cuda_or_auto_and_cuda_only_where_there_is_one():
     from skinlayers.formats.errors import InputError
-    from skinlayers.sweep import analysis_device
+    from skinlayers.analyses.sweep import analysis_device
 
     assert analysis_device("cpu") == "cpu"
     assert analysis_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from skinlayers.truths import FORWARD_SCENES, FORWARD_WAVELENGTHS_NM, SESSION_SEEDS, forward_scene, forward_truth, session_renders
-from skinlayers.tradeoff import COLUMNS, TradeoffPlan, SessionSpec, run_tradeoff
+from skinlayers.analyses.truths import FORWARD_SCENES, FORWARD_WAVELENGTHS_NM, SESSION_SEEDS, forward_scene, forward_truth, session_renders
+from skinlayers.analyses.tradeoff import COLUMNS, TradeoffPlan, SessionSpec, run_tradeoff
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "tradeoff.md"
 
@@ -89,7 +89,7 @@ def test_a_session_photographed_from_the_shipped_monte_carlo(tmp_path):
     from skinlayers.acquire.simulator.simulated import SimulatedBench
     from skinlayers.acquire.simulator.simulation_settings import load_simulation_settings
     from skinlayers.acquire.simulator.simulation_settings import SimulationError
-    from skinlayers.truths import session_rig
+    from skinlayers.analyses.truths import session_rig
 
     record, renders = session_renders(SESSION_SEEDS[0])
     settings = load_simulation_settings(None, truth={"physics": "transport", "photons": record["photons_per_node"]})
@@ -135,11 +135,11 @@ def test_the_64px_monte_carlo_sessions_are_finer_than_the_camera_and_fitted_by_t
     model floor), melanin and epidermal blood near the truth and σ covering it."""
     import numpy as np
 
-    from skinlayers.truths import demo_scene
+    from skinlayers.analyses.truths import demo_scene
     from skinlayers.formats.cube import read_cube
     from skinlayers.formats.exr import read_spectral
-    from skinlayers.tradeoff import make_session
-    from skinlayers.truths import SESSION_PX_64, SESSION_SEEDS_64, shipped_session
+    from skinlayers.analyses.tradeoff import make_session
+    from skinlayers.analyses.truths import SESSION_PX_64, SESSION_SEEDS_64, shipped_session
 
     assert len(SESSION_SEEDS_64) >= 3
     for seed in SESSION_SEEDS_64:
@@ -173,7 +173,7 @@ def test_the_64px_monte_carlo_sessions_are_finer_than_the_camera_and_fitted_by_t
 def test_an_interrupted_monte_carlo_session_resumes_only_from_its_own_bands(tmp_path):
     """``make_session_truth`` keeps each band as it renders it; a rerun takes them back only when made the same
     way, and renders everything again after a damaged file or other settings."""
-    from skinlayers.truths import _partial_bands
+    from skinlayers.analyses.truths import _partial_bands
 
     partial = tmp_path / ".session_1.partial.pt"
     key = {"photons": 10, "size_px": 32, "scene": {"a": 1}, "wavelengths_nm": [430.0], "software": "x"}

@@ -32,7 +32,7 @@ def _session_errors(folder: Path, rig_path: Path | None, simulation: Path, seed:
     from skinlayers.acquire.hardware.rig import load_rig
     from skinlayers.calibration import calibrate_session
     from skinlayers.demo import accuracy_against_truth, simulate_session
-    from skinlayers.truths import MIN_RECTIFY_PX, demo_scene
+    from skinlayers.analyses.truths import MIN_RECTIFY_PX, demo_scene
     from skinlayers.reconstruct import load_fit_settings, reconstruct_cube
 
     rig = load_rig(rig_path, geometry={"cube_px": SIZE, "rectify_px": max(2 * SIZE, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
@@ -50,8 +50,8 @@ def _session_errors(folder: Path, rig_path: Path | None, simulation: Path, seed:
 def test_chosen_bands_against_the_rigs_through_the_pipeline(tmp_path):
     from skinlayers.acquire.hardware.rig import load_rig
     from skinlayers.acquire.simulator.simulation_settings import load_simulation_settings
-    from skinlayers.band_design import Radiometry, default_catalogue, design_bands, write_design
-    from skinlayers.truths import session_rig
+    from skinlayers.analyses.band_design import Radiometry, default_catalogue, design_bands, write_design
+    from skinlayers.analyses.truths import session_rig
 
     base = out_dir() / "band_design"
     rig = session_rig(SIZE)

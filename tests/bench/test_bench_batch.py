@@ -7,7 +7,7 @@ all afresh (``--steps reconstruct``; their ``_reconstruction`` folders removed f
 task as the batch runs them:
 
 - ``loop``: ``process_session`` for each session in turn, in this process (no Dask);
-- ``dask``: ``run_batch`` on ``skinlayers.batch.local_cluster`` of 1 and of 2 worker processes. The cluster's start and
+- ``dask``: ``run_batch`` on ``skinlayers.studies.batch.local_cluster`` of 1 and of 2 worker processes. The cluster's start and
   the workers' first imports (``startup_s``) are timed apart: a study pays them once.
 
 Dask's per-task overhead is the wall time of the one-worker run not spent inside the tasks, a task, and
@@ -42,7 +42,7 @@ def _sessions(count: int) -> Path:
 
     from skinlayers.calibration import calibrate_session
     from skinlayers.demo import simulate_session
-    from skinlayers.truths import demo_scene, session_rig
+    from skinlayers.analyses.truths import demo_scene, session_rig
     from skinlayers.formats.cube import calibrated_dir
 
     folder = out_dir() / "batch_sessions"
@@ -60,7 +60,7 @@ def _sessions(count: int) -> Path:
 
 
 def _fresh(sessions) -> None:
-    from skinlayers.batch import reconstruction_dir
+    from skinlayers.studies.batch import reconstruction_dir
 
     for s in sessions:
         shutil.rmtree(reconstruction_dir(s.path), ignore_errors=True)
@@ -81,7 +81,7 @@ def _row(mode: str, workers: int, startup_s: float, wall_s: float, outcomes) -> 
 def test_batch_throughput_against_workers():
     from distributed import Client
 
-    from skinlayers.batch import BatchOptions, local_cluster, process_session, read_study, run_batch
+    from skinlayers.studies.batch import BatchOptions, local_cluster, process_session, read_study, run_batch
     from skinlayers.formats.threads import use_threads, choose_threads
 
     count = int(os.environ.get("SKINLAYERS_BENCH_BATCH_SESSIONS", "4"))

@@ -52,7 +52,7 @@ def _session(folder: Path, size: int) -> Path:
     from skinlayers.acquire.cli import capture
     from skinlayers.acquire.hardware.rig import load_rig
     from skinlayers.calibration.pipeline import calibrate_session
-    from skinlayers.truths import demo_scene
+    from skinlayers.analyses.truths import demo_scene
 
     session = folder / f"session{size}"
     if not (session / "manifest.json").exists():

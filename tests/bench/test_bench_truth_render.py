@@ -25,7 +25,7 @@ pytestmark = pytest.mark.bench
 def test_truth_render_per_node_in_slabs_against_at_once(monkeypatch):
     from skinlayers.acquire.simulator.scene import SceneConfig
     from skinlayers.acquire.simulator.simulated import SimulatedBench
-    from skinlayers.truths import demo_scene, session_rig
+    from skinlayers.analyses.truths import demo_scene, session_rig
     from skinlayers.model import blur
     from skinlayers.model.illumination import Light
 

@@ -30,7 +30,7 @@ from bench_io import out_dir, write_csv
 from skinlayers.acquire.hardware.rig import load_rig
 from skinlayers.calibration import calibrate_session
 from skinlayers.demo import accuracy_against_truth, simulate_session
-from skinlayers.truths import MIN_RECTIFY_PX, demo_scene
+from skinlayers.analyses.truths import MIN_RECTIFY_PX, demo_scene
 from skinlayers.formats.cube import CUBE_NAME
 from skinlayers.reconstruct import load_fit_settings, reconstruct_cube
 

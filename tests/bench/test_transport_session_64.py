@@ -1,7 +1,7 @@
 """Benchmark: the shipped Monte Carlo sessions at 64², the size a user fits, fitted with each candidate for
 the default (run on demand: ``pytest -m bench tests/bench/test_transport_session_64.py -s``).
 
-The sessions are ``skinlayers.truths.SESSION_SEEDS_64`` (the demo's scene rendered once by the transport
+The sessions are ``skinlayers.analyses.truths.SESSION_SEEDS_64`` (the demo's scene rendered once by the transport
 reference, 250,000 photons per wavelength node; no diffusion default was tuned on them, and they chose
 transport's grids: scores on them are not held out), photographed through the
 simulated rig and calibrated as ``skinlayers tradeoff`` does; each configuration below is a fit setting
@@ -21,8 +21,8 @@ import pytest
 from bench_io import out_dir
 
 from skinlayers.reconstruct.settings import DEFAULT_MAP_CELL_MM
-from skinlayers.tradeoff import SessionSpec, TradeoffPlan, _all_configs, make_session, run_tradeoff
-from skinlayers.truths import SESSION_PX, SESSION_PX_64, SESSION_SEEDS, SESSION_SEEDS_64
+from skinlayers.analyses.tradeoff import SessionSpec, TradeoffPlan, _all_configs, make_session, run_tradeoff
+from skinlayers.analyses.truths import SESSION_PX, SESSION_PX_64, SESSION_SEEDS, SESSION_SEEDS_64
 
 pytestmark = pytest.mark.bench
 

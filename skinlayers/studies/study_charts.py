@@ -1,5 +1,5 @@
 """The study's figures: each map's sessions per group, the principal components, and a contact sheet of
-every session's maps on one colour scale per map (``skinlayers.study`` computes what they show)."""
+every session's maps on one colour scale per map (``skinlayers.studies.study`` computes what they show)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from .formats.files import atomic_write
+from ..formats.files import atomic_write
 from .study import MAPS, reconstructed
 
 __all__ = ["SHEET_ROWS", "plot_study"]
@@ -115,7 +115,7 @@ def _sheet_figure(names: list[str], maps: dict[str, Path], limits: dict[str, tup
 
 def _thumbnails(path: Path) -> dict[str, np.ndarray]:
     """Each map of a maps file box-averaged to at most ``THUMB_PX`` a side."""
-    from .formats.exr import read_exr  # noqa: PLC0415
+    from ..formats.exr import read_exr  # noqa: PLC0415
 
     channels, _ = read_exr(path)
     out = {}

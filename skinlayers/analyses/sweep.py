@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
-from .formats.errors import InputError
-from .formats.files import atomic_write
+from ..formats.errors import InputError
+from ..formats.files import atomic_write
 
 __all__ = ["AnalysisResult", "PeakMemory", "SweepTable", "analysis_device", "cell_text", "echo_outputs", "pareto_front", "time_to_front"]
 

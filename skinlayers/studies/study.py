@@ -29,7 +29,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .formats.files import atomic_write
+from ..formats.files import atomic_write
 
 __all__ = ["MAPS", "STATS", "TRIM", "correlations", "grouping_columns", "group_statistics", "principal_components",
            "is_map_column", "reconstructed", "session_summary", "study_record", "trimmed_mean", "visit_changes", "without_nan", "write_study_json",
@@ -65,8 +65,8 @@ def session_summary(reconstruction: str | Path) -> dict[str, float]:
     from the reconstruction folder's ``maps.exr`` (its ``flags`` decide the scored pixels)."""
     import torch  # noqa: PLC0415 (the study table itself needs no torch)
 
-    from .demo import scored_pixels  # noqa: PLC0415
-    from .formats.exr import read_exr  # noqa: PLC0415
+    from ..demo import scored_pixels  # noqa: PLC0415
+    from ..formats.exr import read_exr  # noqa: PLC0415
 
     channels, _ = read_exr(Path(reconstruction) / "maps.exr")
     keep = scored_pixels(torch.as_tensor(np.asarray(channels["flags"])).to(torch.int64)).numpy()
@@ -90,7 +90,7 @@ def grouping_columns(rows: Sequence[dict], asked: Sequence[str] = ()) -> list[st
     if asked:
         missing = [c for c in asked if c not in columns]
         if missing:
-            from .formats.errors import InputError  # noqa: PLC0415
+            from ..formats.errors import InputError  # noqa: PLC0415
 
             raise InputError(f"--group {', '.join(missing)}: not a column of the study (its columns: {', '.join(columns)})")
         return list(asked)

@@ -1,4 +1,4 @@
-"""The stability matrix's heat maps (``skinlayers.stability``): one PNG per method, a row per condition, a
+"""The stability matrix's heat maps (``skinlayers.analyses.stability``): one PNG per method, a row per condition, a
 cell per strength, coloured by how far the cell is from its worst target (1: at the target) and marked
 met, told (a warning naming the condition), told, not why (a warning naming another cause) or SILENT
 (a target missed and nothing said)."""

@@ -51,7 +51,7 @@ import torch
 import typer
 
 from .band_discrepancy import Discrepancy
-from .formats.errors import InputError
+from ..formats.errors import InputError
 
 __all__ = ["CATALOGUE_DEFAULT", "CRITERIA", "BandDesign", "Criterion", "Filter", "FilterTerms", "Radiometry", "band_jacobian",
            "bound_variance", "default_catalogue", "design_bands", "exchange_search", "exhaustive_search", "filter_information",
@@ -136,10 +136,10 @@ class Radiometry:
     noise of the calibrated reflectance of a cube pixel (``reflectance_sd``)."""
 
     def __init__(self, rig=None, simulation=None) -> None:
-        from .acquire.simulator._optics import band_spectrum  # noqa: PLC0415
-        from .acquire.hardware.rig import load_rig  # noqa: PLC0415
-        from .acquire.simulator.simulated import flash_power  # noqa: PLC0415
-        from .acquire.simulator.simulation_settings import load_simulation_settings  # noqa: PLC0415
+        from ..acquire.simulator._optics import band_spectrum  # noqa: PLC0415
+        from ..acquire.hardware.rig import load_rig  # noqa: PLC0415
+        from ..acquire.simulator.simulated import flash_power  # noqa: PLC0415
+        from ..acquire.simulator.simulation_settings import load_simulation_settings  # noqa: PLC0415
 
         self.rig = rig or load_rig()
         self.settings = simulation if simulation is not None else load_simulation_settings(None)
@@ -207,7 +207,7 @@ class Radiometry:
 
     def _rgb_weights(self) -> tuple[np.ndarray, np.ndarray]:
         """Wavelengths ``(K,)`` over ``RGB_SPAN_NM`` and flash × sensitivity of each channel there ``(3, K)``."""
-        from .acquire.simulator._optics import CHANNELS, blackbody, channel_sensitivity  # noqa: PLC0415
+        from ..acquire.simulator._optics import CHANNELS, blackbody, channel_sensitivity  # noqa: PLC0415
 
         s = self.settings
         nodes = np.arange(RGB_SPAN_NM[0], RGB_SPAN_NM[1] + RGB_STEP_NM / 2, RGB_STEP_NM)
@@ -239,7 +239,7 @@ class Radiometry:
 def prior_skins(samples: int = PRIOR_SAMPLES, seed: int = PRIOR_SEED) -> torch.Tensor:
     """The prior ``(rows × samples, 5)`` float64 in ``PARAMETERS`` order: each Table 2 row, each chromophore
     multiplied by exp(σ·z) (β_m: its logit moved by σ·z), z standard normal from ``seed``."""
-    from .model import TABLE2  # noqa: PLC0415
+    from ..model import TABLE2  # noqa: PLC0415
 
     generator = torch.Generator().manual_seed(seed)
     out = []
@@ -258,7 +258,7 @@ def band_jacobian(skins: torch.Tensor, filters: Sequence[Filter], view_angle_deg
     """The fit's band reflectance ``(M, F)`` of each skin ``(M, 5)`` through each filter, seen at
     ``view_angle_deg``, and its derivative ``(M, F, 5)`` in log C_m, β_m, log C_he, log C_bc, log C_hd
     (``reconstruct/levels/problem.py``'s band model)."""
-    from .reconstruct.levels.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
+    from ..reconstruct.levels.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
 
     nodes = band_nodes(torch.tensor([f.centre_nm for f in filters], dtype=torch.float64),
                        torch.tensor([f.fwhm_nm for f in filters], dtype=torch.float64))  # (F, 3)
@@ -270,10 +270,10 @@ def weighted_jacobian(skins: torch.Tensor, nodes_nm: torch.Tensor, weights: torc
     """The model's reflectance ``(M, F)`` of each skin ``(M, 5)`` through each of F responses, each a
     weighted sum over its wavelengths (``nodes_nm``, ``weights`` ``(F, K)``, weights summing to 1), times
     the camera's exit factor; and its derivative ``(M, F, 5)`` in the bound's parameters."""
-    from .model import SkinModel  # noqa: PLC0415
-    from .model.params import SkinParams  # noqa: PLC0415
-    from .model.radiometry import exit_factor  # noqa: PLC0415
-    from .model.settings import ModelSettings  # noqa: PLC0415
+    from ..model import SkinModel  # noqa: PLC0415
+    from ..model.params import SkinParams  # noqa: PLC0415
+    from ..model.radiometry import exit_factor  # noqa: PLC0415
+    from ..model.settings import ModelSettings  # noqa: PLC0415
 
     model = SkinModel(ModelSettings())
     o = model.settings.optics
@@ -356,8 +356,8 @@ def _outer(weighted: torch.Tensor) -> torch.Tensor:
 def shared_pixels(rig=None, cells_mm: dict[str, float] | None = None) -> torch.Tensor:
     """Pixels of the rig's cube that share one value of each parameter ``(5,)`` in the fit's layout
     (``DEFAULT_MAP_CELL_MM``: a node's cell², the whole window at most; 1 per pixel)."""
-    from .acquire.hardware.rig import load_rig  # noqa: PLC0415
-    from .reconstruct.settings import DEFAULT_MAP_CELL_MM  # noqa: PLC0415
+    from ..acquire.hardware.rig import load_rig  # noqa: PLC0415
+    from ..reconstruct.settings import DEFAULT_MAP_CELL_MM  # noqa: PLC0415
 
     g = (rig or load_rig()).geometry
     px_mm = g.window_mm / g.cube_px
@@ -413,7 +413,7 @@ class Criterion:
 
     def __init__(self, information: torch.Tensor | FilterTerms, shared: torch.Tensor, kind: str = "rig",
                  reference: Sequence[int] | None = None, candidates: int | None = None):
-        from .reconstruct.diagnosis.checks import MAP_TARGETS  # noqa: PLC0415
+        from ..reconstruct.diagnosis.checks import MAP_TARGETS  # noqa: PLC0415
 
         if kind not in CRITERIA or (kind == "rig" and reference is None):
             raise ValueError(f"criterion {kind!r}: one of {CRITERIA}; 'rig' needs the reference set")
@@ -594,9 +594,9 @@ def write_design(design: BandDesign, out: Path, rig=None, *, force: bool = False
 
     import yaml  # noqa: PLC0415
 
-    from .acquire.hardware.rig import load_rig  # noqa: PLC0415
-    from .formats.files import atomic_write  # noqa: PLC0415
-    from .formats.outputs import claim_outputs  # noqa: PLC0415
+    from ..acquire.hardware.rig import load_rig  # noqa: PLC0415
+    from ..formats.files import atomic_write  # noqa: PLC0415
+    from ..formats.outputs import claim_outputs  # noqa: PLC0415
 
     rig = rig or load_rig()
     positions = [p for p in range(1, rig.wheel.position_count + 1) if p != rig.wheel.dark_position]
@@ -629,7 +629,7 @@ def _chart(design: BandDesign, rig_bands: int, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    from .formats.files import atomic_write  # noqa: PLC0415
+    from ..formats.files import atomic_write  # noqa: PLC0415
 
     fig, ax = plt.subplots(figsize=(6, 4))
     counts = list(design.by_count)
@@ -666,11 +666,11 @@ def design_bands_cli(
     Example: skinlayers design-bands                 (9 of the default catalogue: 10-nm filters, 400–720 nm)
              skinlayers design-bands --catalog my_filters.csv --count 8 -o my_design
     """
-    from .acquire.hardware.rig import load_rig  # noqa: PLC0415
+    from ..acquire.hardware.rig import load_rig  # noqa: PLC0415
 
     if criterion not in CRITERIA:
         raise InputError(f"--criterion {criterion!r}: choose one of {', '.join(CRITERIA)}")
-    from .formats.outputs import check_outputs  # noqa: PLC0415
+    from ..formats.outputs import check_outputs  # noqa: PLC0415
 
     catalogue = read_catalogue(catalog) if catalog is not None else default_catalogue()
     rig = load_rig(rig_path)

@@ -2,14 +2,14 @@
 
 A matrix of conditions × methods on simulated sessions with a known truth. Each condition is swept in
 strength (``CONDITIONS``); each cell is one fit, measured against the truth the session was simulated
-from (``skinlayers.tradeoff``'s sessions: the demo's scene through the rig and the calibration):
+from (``skinlayers.analyses.tradeoff``'s sessions: the demo's scene through the rig and the calibration):
 
 - where the condition lives decides what is simulated anew: on the calibrated cube (``"cube"``: the
   camera's noise scaled, bands misregistered, a band blurred by the subject's motion, a dead band;
   seconds a cell), in the calibration (``"calibration"``: the Spectralon's certified value wrong at one
   band or at all, the base session calibrated anew), in the capture (``"capture"``: the skin type, hairs,
   the flash drifting between frames; a new session each), in the physics (``"physics"``: the shipped
-  transport sessions of ``skinlayers.truths``, the skin rendered by Monte Carlo);
+  transport sessions of ``skinlayers.analyses.truths``, the skin rendered by Monte Carlo);
 - a cell **meets the targets** when each map's median error is within ``TARGETS`` (the demo's) over the
   scored pixels (``demo.scored_pixels``: visible, not flagged for a high residual or a hair), the
   residual is at the camera's noise (``RESIDUAL_AT_NOISE``) and σ covers ``SIGMA_COVER`` of the truth
@@ -39,14 +39,14 @@ import typer
 
 from .sweep import AnalysisResult, SweepTable, analysis_device, cell_text, echo_outputs
 from .tradeoff import TARGETS, SessionSpec, make_session
-from .formats.threads import THREADS_HELP, command_threads
+from ..formats.threads import THREADS_HELP, command_threads
 
 __all__ = ["COLUMNS", "CONDITIONS", "METHODS", "StabilityPlan", "StabilityResult", "cell_verdict", "make_plan", "run_stability"]
 
 MAPS = ("C_m", "beta_m", "C_he", "C_bc", "C_hd")
 #: The residual's RMS over the camera's noise RMS (same pixels and bands) at or below which the residual is
 #: "at the noise": above what clean sessions give with the default fit (docs/stability.md, "From
-#: skinlayers/stability.py").
+#: skinlayers/analyses/stability.py").
 RESIDUAL_AT_NOISE = 1.2
 #: The share of scored pixels whose truth each targeted map's σ must cover within 2σ.
 SIGMA_COVER = 0.85
@@ -83,7 +83,7 @@ CONDITIONS: dict[str, Condition] = {
     "flash drift": Condition("capture", (0.1, 0.2), (0.2,), "frame-to-frame flash jitter (relative)", cause=("flash",)),
     "physics": Condition("physics", (41, 42, 43), (41,), "transport session (Monte Carlo) seed", cause=("physics",)),
 }
-#: The methods: fit settings over the defaults (``skinlayers.tradeoff.INVERSE_CONFIGS``' names where shared).
+#: The methods: fit settings over the defaults (``skinlayers.analyses.tradeoff.INVERSE_CONFIGS``' names where shared).
 METHODS: dict[str, dict] = {
     "auto": {},
     "gn-hom": {"forward": "heterogeneous"},
@@ -184,7 +184,7 @@ def _perturb_cube(cube, truth_r: torch.Tensor, condition: str, strength):
     true reflectance on the cube's grid, whose difference from the cube is the camera's noise)."""
     from kornia.filters import motion_blur  # noqa: PLC0415
 
-    from .formats.cube import Cube  # noqa: PLC0415
+    from ..formats.cube import Cube  # noqa: PLC0415
 
     r = cube.reflectance.clone().float()
     if condition == "noise":
@@ -207,7 +207,7 @@ def _recorded_rig(manifest: dict, condition: str, strength) -> dict:
     the condition's band, or at every band."""
     import copy  # noqa: PLC0415
 
-    from .formats.rig import rig_from_dict  # noqa: PLC0415
+    from ..formats.rig import rig_from_dict  # noqa: PLC0415
 
     out = copy.deepcopy(manifest)
     rig = rig_from_dict(out["rig"], "manifest rig")
@@ -240,10 +240,10 @@ class _Runner:
         self.out, self.plan, self.device = out, plan, device
 
     def measure(self, case: dict) -> dict:
-        from .formats.cube import read_cube  # noqa: PLC0415
-        from .formats.errors import InputError  # noqa: PLC0415
-        from .formats.resources import ResourceError  # noqa: PLC0415
-        from .reconstruct import fit_cube, load_fit_settings  # noqa: PLC0415
+        from ..formats.cube import read_cube  # noqa: PLC0415
+        from ..formats.errors import InputError  # noqa: PLC0415
+        from ..formats.resources import ResourceError  # noqa: PLC0415
+        from ..reconstruct import fit_cube, load_fit_settings  # noqa: PLC0415
 
         condition, strength, method = case["condition"], case["strength"], case["method"]
         spec, changes = self._session_of(condition, strength)
@@ -305,7 +305,7 @@ def _recalibrated(base: Path, variant: Path, condition: str, strength) -> None:
     and truth as they were), and calibrated."""
     import shutil  # noqa: PLC0415
 
-    from .calibration import calibrate_session  # noqa: PLC0415
+    from ..calibration import calibrate_session  # noqa: PLC0415
 
     if variant.exists():
         shutil.rmtree(variant)  # an incomplete one from an interrupted run
@@ -320,7 +320,7 @@ def _slug(text: str) -> str:
 
 
 def _truth_reflectance(session: Path) -> torch.Tensor:
-    from .formats.exr import read_spectral  # noqa: PLC0415
+    from ..formats.exr import read_spectral  # noqa: PLC0415
 
     return read_spectral(session / "truth" / "reflectance.exr")[0].double()
 
@@ -335,10 +335,10 @@ def _calibration_flags(calibrated: Path) -> list[str]:
 def _against_truth(fit, session: Path, truth_r: torch.Tensor, clean_cube: Path, noise_scale: float) -> dict:
     """Each map's median error and σ coverage against the truth over the scored pixels, and the residual
     over the camera's noise (``clean_cube``'s difference from the truth, times ``noise_scale``)."""
-    from .demo import map_errors, scored_pixels, sigma_coverage  # noqa: PLC0415
-    from .formats.cube import read_cube  # noqa: PLC0415
-    from .model.maps_io import read_maps  # noqa: PLC0415
-    from .reconstruct.diagnosis.checks import FLAG_BITS  # noqa: PLC0415
+    from ..demo import map_errors, scored_pixels, sigma_coverage  # noqa: PLC0415
+    from ..formats.cube import read_cube  # noqa: PLC0415
+    from ..model.maps_io import read_maps  # noqa: PLC0415
+    from ..reconstruct.diagnosis.checks import FLAG_BITS  # noqa: PLC0415
 
     truth = read_maps(session / "truth" / "maps.exr")
     keep = scored_pixels(fit.flags.cpu())

@@ -78,9 +78,9 @@ def measure_discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = 
                         cube_px: int = DISCREPANCY_CUBE_PX, device: str | torch.device = "cpu") -> Discrepancy:
     """The simulator's render of the demo's scene through each filter against the fit's renderer at the
     same maps (the module docstring); minutes for a catalogue of tens of filters on two CPU cores."""
-    from .acquire.simulator._optics import band_spectrum  # noqa: PLC0415
-    from .acquire.simulator.scene import scene_from_dict  # noqa: PLC0415
-    from .acquire.simulator.simulated import SimulatedBench  # noqa: PLC0415
+    from ..acquire.simulator._optics import band_spectrum  # noqa: PLC0415
+    from ..acquire.simulator.scene import scene_from_dict  # noqa: PLC0415
+    from ..acquire.simulator.simulated import SimulatedBench  # noqa: PLC0415
     from .truths import demo_scene  # noqa: PLC0415
 
     start = time.perf_counter()
@@ -122,10 +122,10 @@ def _chunks(filters: Sequence) -> list[list]:
 def _fit_render(maps, rig, filters) -> torch.Tensor:
     """The fit's renderer (default settings) at ``maps`` on the cube grid through each filter ``(F, H, W)``:
     its three nodes per band and their weights, the window lit, seen from the rig's camera."""
-    from .model.illumination import Light  # noqa: PLC0415
-    from .model.renderer import SkinRenderer  # noqa: PLC0415
-    from .model.settings import ModelSettings  # noqa: PLC0415
-    from .reconstruct.levels.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
+    from ..model.illumination import Light  # noqa: PLC0415
+    from ..model.renderer import SkinRenderer  # noqa: PLC0415
+    from ..model.settings import ModelSettings  # noqa: PLC0415
+    from ..reconstruct.levels.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
 
     nodes = band_nodes(torch.tensor([f.centre_nm for f in filters], dtype=torch.float64),
                        torch.tensor([f.fwhm_nm for f in filters], dtype=torch.float64))  # (F, 3)
@@ -144,11 +144,11 @@ def discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPA
     measurement depends on (the rig's window and camera angle, the scene, seed, simulation and model
     settings): a later design reads back the filters measured before and measures the others only;
     ``say`` reports a measurement's start."""
-    from .acquire.simulator.simulation_settings import load_simulation_settings  # noqa: PLC0415
+    from ..acquire.simulator.simulation_settings import load_simulation_settings  # noqa: PLC0415
     from .truths import demo_scene  # noqa: PLC0415
-    from .formats.files import atomic_write  # noqa: PLC0415
-    from .model.settings import ModelSettings  # noqa: PLC0415
-    from .model.tables import default_cache_dir  # noqa: PLC0415
+    from ..formats.files import atomic_write  # noqa: PLC0415
+    from ..model.settings import ModelSettings  # noqa: PLC0415
+    from ..model.tables import default_cache_dir  # noqa: PLC0415
 
     filters = list(dict.fromkeys(filters))
     settings = simulation if simulation is not None else load_simulation_settings(None)

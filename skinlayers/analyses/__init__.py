@@ -1,0 +1,1 @@
+"""The analyses the user asked for: the speed–accuracy tradeoff, the stability matrix, band design and its discrepancy, each with its charts, over the sweep they share and the Monte Carlo truths shipped as data."""

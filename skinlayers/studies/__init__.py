@@ -1,0 +1,1 @@
+"""Many sessions at once: batch reconstruction on Dask and the study that tabulates and charts its maps."""
