@@ -102,7 +102,7 @@ def test_the_exchange_agrees_with_the_exhaustive_search_on_random_catalogues():
 def test_the_model_errors_bias_is_the_fits_least_squares_answer_to_it():
     """With the noise negligible, a set's expected error is the square of the unweighted least-squares fit
     of the linear model to the model's error alone (the fit weighs its bands alike)."""
-    from skinlayers.analyses.band_design import Criterion, FilterTerms, _outer
+    from skinlayers.analyses.band_information import Criterion, FilterTerms, _outer
 
     generator = torch.Generator().manual_seed(5)
     jac = torch.randn(2, 8, 5, generator=generator, dtype=torch.float64)  # (M, F, 5)
@@ -117,7 +117,8 @@ def test_the_model_errors_bias_is_the_fits_least_squares_answer_to_it():
 
 def test_a_filter_the_model_misses_is_left_out():
     """Filters 1 and 7 inform C_m alike; the model misses what filter 1 sees (a bias): the search takes 7."""
-    from skinlayers.analyses.band_design import Criterion, FilterTerms, _outer, exhaustive_search
+    from skinlayers.analyses.band_design import exhaustive_search
+    from skinlayers.analyses.band_information import Criterion, FilterTerms, _outer
 
     jac = torch.zeros(1, 8, 5, dtype=torch.float64)
     for f, k in ((1, 0), (2, 1), (3, 2), (4, 4), (7, 0)):
@@ -166,13 +167,13 @@ def test_an_rgb_camera_cannot_determine_the_five_maps():
     """DWRR08 §6.1: five parameters a point, three channels. Under the same flash and noise model, the RGB
     camera leaves the maps it shares over cells undetermined (a uniform cell adds no new direction), while
     the rig's nine bands determine every map."""
-    from skinlayers.analyses.band_design import (UNDETERMINED_SD, Criterion, Filter, Radiometry, _joined, filter_terms, rgb_terms,
-                                        shared_pixels)
+    from skinlayers.analyses.band_information import (UNDETERMINED_SD, Criterion, Filter, Radiometry, filter_terms, joined_terms,
+                                                      rgb_terms, shared_pixels)
 
     radiometry = Radiometry()
     skins = torch.tensor([III_INTERIOR, (0.03, 0.6, 0.003, 0.0004, 0.01)], dtype=torch.float64)
     rig = [Filter(b.wavelength_nm, b.fwhm_nm) for b in radiometry.rig.bands]
-    terms = _joined(filter_terms(radiometry, skins, rig), rgb_terms(radiometry, skins, model_error=False))
+    terms = joined_terms(filter_terms(radiometry, skins, rig), rgb_terms(radiometry, skins, model_error=False))
     criterion = Criterion(terms, shared_pixels(radiometry.rig), "targets")
     rgb, nine = criterion.median_sd([9, 10, 11]), criterion.median_sd(list(range(9)))
     assert all(nine[k] < 1.0 for k in ("C_m", "beta_m", "C_he", "C_hd")), nine

@@ -30,7 +30,7 @@ import torch
 
 __all__ = ["DISCREPANCY_CUBE_PX", "DISCREPANCY_SEED", "Discrepancy", "discrepancy", "measure_discrepancy"]
 
-#: The scene's seed: the prior's (``band_design.PRIOR_SEED``); the pipeline's checks use others.
+#: The scene's seed: the prior's (``band_information.PRIOR_SEED``); the pipeline's checks use others.
 DISCREPANCY_SEED = 20
 #: The side of the cube it is measured on (pixels; the rig's cube where that is smaller).
 DISCREPANCY_CUBE_PX = 64

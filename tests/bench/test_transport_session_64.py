@@ -21,7 +21,8 @@ import pytest
 from bench_io import out_dir
 
 from skinlayers.reconstruct.settings import DEFAULT_MAP_CELL_MM
-from skinlayers.analyses.tradeoff import SessionSpec, TradeoffPlan, _all_configs, make_session, run_tradeoff
+from skinlayers.analyses.tradeoff import SessionSpec, TradeoffPlan, make_session, run_tradeoff
+from skinlayers.analyses.tradeoff_plan import all_configs
 from skinlayers.analyses.truths import SESSION_PX, SESSION_PX_64, SESSION_SEEDS, SESSION_SEEDS_64
 
 pytestmark = pytest.mark.bench
@@ -44,7 +45,7 @@ CONFIGS = {
 def test_the_64px_monte_carlo_sessions_fitted_with_each_candidate():
     out = out_dir() / "transport_session_64"
     plan = TradeoffPlan(forward=[], inverse=list(CONFIGS), sessions=[SessionSpec("transport", s, SESSION_PX_64) for s in SESSION_SEEDS_64],
-                        scale_sizes=[], scale_configs=[], scale_seed=0, configs={**_all_configs(), **CONFIGS})
+                        scale_sizes=[], scale_configs=[], scale_seed=0, configs={**all_configs(), **CONFIGS})
     result = run_tradeoff(out, plan=plan)
     with result.table.open() as f:
         rows = [r for r in csv.DictReader(f) if r["part"] == "inverse"]
