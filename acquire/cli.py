@@ -161,7 +161,7 @@ def example_maps(
 
     from ..formats.maps import MAX_MM_PER_PIXEL, MIN_MM_PER_PIXEL  # noqa: PLC0415
     from ..formats.outputs import check_outputs, write_file  # noqa: PLC0415
-    from ..model.maps_io import write_maps  # noqa: PLC0415
+    from ..model.patch.maps_io import write_maps  # noqa: PLC0415
     from .simulator.scene import SkinScene, load_scene  # noqa: PLC0415
 
     if not 8 <= size <= 4096:

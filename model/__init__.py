@@ -4,11 +4,11 @@ Pure, differentiable functions on tensors (CPU or CUDA alike); imports nothing o
 its contracts (``formats``).
 """
 
-from .colour import ColourConverter, ita_degrees
-from .fresnel import diffuse_fresnel_reflectance, fresnel_reflectance, fresnel_transmittance
-from .gaussians import fit_gaussian_weights, gaussian_sum_hankel, gaussian_sum_profile
-from .layered import LayerTransforms, SkinModel, combine_layers, inverse_hankel
-from .params import (
+from .optics.colour import ColourConverter, ita_degrees
+from .optics.fresnel import diffuse_fresnel_reflectance, fresnel_reflectance, fresnel_transmittance
+from .column.gaussians import fit_gaussian_weights, gaussian_sum_hankel, gaussian_sum_profile
+from .column.layered import LayerTransforms, SkinModel, combine_layers, inverse_hankel
+from .optics.params import (
     N_PARAMS,
     PARAMETER_BOUNDS,
     PARAMETER_NAMES,
@@ -18,7 +18,7 @@ from .params import (
     layer_absorption,
     parameter_bounds,
 )
-from .profiles import (
+from .column.profiles import (
     LayerProfiles,
     dipole_hankel,
     dipole_profile,
@@ -28,8 +28,8 @@ from .profiles import (
     multipole_totals,
 )
 from .settings import ModelSettings, SettingsError, SkinOptics, TableSettings, load_model_settings
-from .spectra import ChromophoreSpectra, chromophore_spectra, epidermis_scattering
-from .tables import ProfileTables, build_profile_tables, load_profile_tables
+from .optics.spectra import ChromophoreSpectra, chromophore_spectra, epidermis_scattering
+from .column.tables import ProfileTables, build_profile_tables, load_profile_tables
 
 __all__ = [
     "N_PARAMS",

@@ -14,9 +14,9 @@ import yaml
 
 from ..formats.errors import InputError
 from ..formats.outputs import write_file
-from .colour import ColourConverter, ita_degrees
-from .layered import SkinModel
-from .params import PARAMETER_NAMES, TABLE2, SkinParams
+from .optics.colour import ColourConverter, ita_degrees
+from .column.layered import SkinModel
+from .optics.params import PARAMETER_NAMES, TABLE2, SkinParams
 from .settings import ModelSettings, load_model_settings
 from .transport import check_physics_options
 from ..formats.threads import THREADS_HELP, command_threads
@@ -249,7 +249,7 @@ def tables(
     """
     from rich.progress import Progress  # noqa: PLC0415
 
-    from .tables import default_cache_dir, load_profile_tables  # noqa: PLC0415
+    from .column.tables import default_cache_dir, load_profile_tables  # noqa: PLC0415
 
     settings: ModelSettings = load_model_settings(config)
     wl = parse_wavelengths(wavelengths) if wavelengths else torch.tensor(settings.render_wavelengths_nm, dtype=torch.float64)
@@ -329,7 +329,7 @@ def render(
 
     Example: skinlayers render maps.exr --light window:7.5 --edit hemoglobin*1.5 -o out/render
     """
-    from .illumination import parse_light  # noqa: PLC0415
+    from .render.illumination import parse_light  # noqa: PLC0415
     from ..formats.exr import write_spectral  # noqa: PLC0415
     from ..formats.outputs import claim_outputs  # noqa: PLC0415
 
@@ -368,8 +368,8 @@ def render(
 def _edited_maps(maps_file: Path, swap: list[str], edit: list[str], tattoo: Path | None):
     """The maps to render: read, then each ``--swap`` (NAME=FILE.exr), each ``--edit``, and the ``--tattoo``'s ink."""
     from ..formats.maps import read_absorbance  # noqa: PLC0415
-    from .edits import add_absorbance, apply_edit, swap_chromophore  # noqa: PLC0415
-    from .maps_io import read_maps  # noqa: PLC0415
+    from .patch.edits import add_absorbance, apply_edit, swap_chromophore  # noqa: PLC0415
+    from .patch.maps_io import read_maps  # noqa: PLC0415
 
     maps = read_maps(maps_file)
     for item in swap:
@@ -390,7 +390,7 @@ def _edited_maps(maps_file: Path, swap: list[str], edit: list[str], tattoo: Path
 def _render_diffusion(maps, light, wl: torch.Tensor, settings: ModelSettings, blur, angles: dict, bands_per_pass):
     """The diffusion renderer, whole, ``bands_per_pass`` bands at a time (None: all; the memory plan's):
     the image ``(L, H, W)``, header extras, a note."""
-    from .renderer import SkinRenderer  # noqa: PLC0415
+    from .render.renderer import SkinRenderer  # noqa: PLC0415
 
     renderer = SkinRenderer(settings)
     images, terms = [], []
@@ -422,14 +422,14 @@ def _render_transport(maps, light, wl: torch.Tensor, settings: ModelSettings, ph
 
 
 def _memory_plan(maps_file: Path, light, wl: torch.Tensor, settings: ModelSettings, device, tile: int, physics: str):
-    """Whole or in tiles, from the maps' header alone (``model/tiles.py``); refused here, before any large
+    """Whole or in tiles, from the maps' header alone (``model/render/tiles.py``); refused here, before any large
     allocation, when not even tiles fit the memory budget. None for the Monte Carlo (it renders pixels
     in batches of its own)."""
     from ..formats.exr import float_attribute, read_exr_header  # noqa: PLC0415
     from ..formats.maps import MapsError  # noqa: PLC0415
-    from .renderer import SkinRenderer  # noqa: PLC0415
+    from .render.renderer import SkinRenderer  # noqa: PLC0415
     from ..formats.resources import memory_budget_bytes  # noqa: PLC0415
-    from .tiles import plan_render  # noqa: PLC0415
+    from .render.tiles import plan_render  # noqa: PLC0415
 
     if tile < 0 or 0 < tile < 16:
         raise InputError(f"--tile {tile}: 0 (automatic) or a tile side of at least 16 px")
@@ -447,8 +447,8 @@ def _render_tiles(maps, light, wl: torch.Tensor, settings: ModelSettings, blur, 
     """The diffusion renderer tile by tile, with a progress bar: the image ``(L, H, W)``, header extras, a note."""
     from rich.progress import Progress  # noqa: PLC0415
 
-    from .renderer import SkinRenderer  # noqa: PLC0415
-    from .tiles import render_tiled  # noqa: PLC0415
+    from .render.renderer import SkinRenderer  # noqa: PLC0415
+    from .render.tiles import render_tiled  # noqa: PLC0415
 
     with Progress(transient=True) as bar:
         task = bar.add_task(f"tiles of {plan.tile_px} px", total=None)

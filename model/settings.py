@@ -17,7 +17,7 @@ from pydantic import Field, field_validator, model_validator
 
 from ..formats.errors import SettingsError as BaseSettingsError
 from ..formats.settings import Strict, load_settings
-from .optics import SkinOptics
+from .optics.optics import SkinOptics
 
 __all__ = ["ModelSettings", "RenderSettings", "SettingsError", "SkinOptics", "TableSettings", "TransportSettings", "load_model_settings"]
 
@@ -25,7 +25,7 @@ PAPER_RENDER_WAVELENGTHS_NM = [400.0 + 35.0 * i for i in range(8)]
 #: The light transport a render can use: the diffusion model, or the Monte Carlo reference (model/transport).
 PHYSICS = ("diffusion", "transport")
 #: The layer responses the model combines: radiative transport's (adding-doubling totals by similarity,
-#: model/layer_totals.py) or the paper's diffusion (dipole and multipole, DWRR08 §3).
+#: model/column/layer_totals.py) or the paper's diffusion (dipole and multipole, DWRR08 §3).
 PROFILES = ("transport", "diffusion")
 #: Photons per wavelength a Monte Carlo render may take.
 MIN_PHOTONS, MAX_PHOTONS = 1000, 10**10
@@ -74,7 +74,7 @@ class RenderSettings(Strict):
     """The heterogeneous renderer (DWRR08 §4.1–4.3, Eq. 5–9; docs/renderer.md)."""
 
     blur: Literal["pyramid", "fft", "chain"] = Field(
-        "pyramid", description="How Gaussian blur stacks are computed (model/blur.py; their agreement: docs/renderer.md)."
+        "pyramid", description="How Gaussian blur stacks are computed (model/render/blur.py; their agreement: docs/renderer.md)."
     )
     identity_below_px: float = Field(
         0.25,
@@ -116,7 +116,7 @@ class RenderSettings(Strict):
         description=(
             "How neighbouring skin of different absorption couples: 'exit' (DWRR08 Eq. 9: each profile "
             "chosen by the absorption at the exit pixel) or 'segment' (each Gaussian's weight chosen by "
-            "the absorption averaged over where its light went between entry and exit: model/renderer.py; "
+            "the absorption averaged over where its light went between entry and exit: model/render/renderer.py; "
             "both against the Monte Carlo in docs/transport.md)."
         ),
     )
@@ -194,8 +194,8 @@ class ModelSettings(Strict):
         description=(
             "The layer responses the model combines: 'transport' (each profile's plane integral from "
             "adding-doubling and its lateral shape from the project's Monte Carlo, both tabulated by "
-            "similarity; the unscattered beam through the epidermis kept collimated: model/layer_totals.py, "
-            "model/layer_shapes.py) or 'diffusion' (DWRR08's dipole and multipole, still the default: on "
+            "similarity; the unscattered beam through the epidermis kept collimated: model/column/layer_totals.py, "
+            "model/column/layer_shapes.py) or 'diffusion' (DWRR08's dipole and multipole, still the default: on "
             "sessions rendered by transport, transport fits melanin and epidermal blood better and dermal "
             "blood worse, as it does on its own physics at that noise). "
             "Both against the Monte Carlo: docs/transport.md, \"A forward model that matches transport\"."
@@ -206,7 +206,7 @@ class ModelSettings(Strict):
         description=(
             "With profiles 'transport': how the layers hand light to each other. 'angular': the dermis's "
             "reflectance R₂⁺ times the factor κ that makes Eq. 7's scalar series give the two layers' total "
-            "as adding-doubling stacks them angle by angle (model/layer_totals.py, handover_factor); "
+            "as adding-doubling stacks them angle by angle (model/column/layer_totals.py, handover_factor); "
             "'lambertian': Eq. 7 as DWRR08 has it, every hand-over Lambertian (0.3–1% too bright in the green "
             "on homogeneous skin: docs/transport.md). Diffusion profiles always hand over as the paper does."
         ),
@@ -231,7 +231,7 @@ class ModelSettings(Strict):
     @model_validator(mode="after")
     def _profiles(self) -> "ModelSettings":
         if self.profiles == "transport":
-            from .layer_totals import check_optics  # noqa: PLC0415
+            from .column.layer_totals import check_optics  # noqa: PLC0415
 
             check_optics(self.optics)
         return self

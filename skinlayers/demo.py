@@ -50,7 +50,7 @@ def accuracy_against_truth(session: Path, reconstruction: Path, cube: Path) -> d
     import torch  # noqa: PLC0415
 
     from .formats.exr import read_exr  # noqa: PLC0415
-    from .model.maps_io import read_maps  # noqa: PLC0415
+    from .model.patch.maps_io import read_maps  # noqa: PLC0415
     from .reconstruct.diagnosis.checks import FLAG_BITS  # noqa: PLC0415
 
     truth = read_maps(session / "truth" / "maps.exr")
@@ -140,7 +140,7 @@ def _figure(session: Path, reconstruction: Path, path: Path) -> None:
     import matplotlib.pyplot as plt  # noqa: PLC0415
     import torch.nn.functional as F  # noqa: PLC0415
 
-    from .model.maps_io import read_maps  # noqa: PLC0415
+    from .model.patch.maps_io import read_maps  # noqa: PLC0415
 
     truth, fit = read_maps(session / "truth" / "maps.exr"), read_maps(reconstruction / "maps.exr")
     k = truth.shape[-1] // fit.shape[-1]

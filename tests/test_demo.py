@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 from skinlayers.formats.cube import read_cube
 from skinlayers.cli import app
 from skinlayers.model import PARAMETER_BOUNDS, PARAMETER_NAMES
-from skinlayers.model.maps_io import read_maps
+from skinlayers.model.patch.maps_io import read_maps
 from skinlayers.reconstruct.mapfit.fit import fit_cube
 from skinlayers.reconstruct.settings import load_fit_settings
 

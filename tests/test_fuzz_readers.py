@@ -29,7 +29,7 @@ from skinlayers.formats.cube import read_cube
 from skinlayers.formats.errors import SkinlayersError
 from skinlayers.formats.exr import read_spectral, write_exr
 from skinlayers.formats.manifest import read_manifest
-from skinlayers.model.maps_io import read_maps
+from skinlayers.model.patch.maps_io import read_maps
 from skinlayers.model.settings import load_model_settings
 from skinlayers.reconstruct.settings import load_fit_settings
 from skinlayers.reconstruct.spectrum.spectra_io import read_spectra_csv

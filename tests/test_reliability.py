@@ -20,8 +20,8 @@ import torch
 
 from skinlayers.formats.cube import Cube, CubeHeader, write_cube
 from skinlayers.model import TABLE2
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.maps_io import write_maps
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.patch.maps_io import write_maps
 
 BANDS = [430.0, 460.0, 490.0, 520.0, 550.0, 580.0]
 
@@ -230,7 +230,7 @@ def test_render_in_band_groups_gives_the_same_image(maps_file, tmp_path, run_cli
     """Where all bands do not fit at once, render draws them a few at a time: the same image, every group
     taking the inter-scattering terms all bands at once would (``SkinRenderer.series_terms_for``)."""
     from skinlayers.formats.exr import read_spectral
-    from skinlayers.model.renderer import SkinRenderer, render_bytes
+    from skinlayers.model.render.renderer import SkinRenderer, render_bytes
 
     code, _, _ = run_cli("render", str(maps_file), "-o", str(tmp_path / "whole"), "--bands", "450,550,650", "--light", "window")
     assert code == 0

@@ -158,7 +158,7 @@ def test_the_64px_monte_carlo_sessions_are_finer_than_the_camera_and_fitted_by_t
     # a guard on transport's own grids and floor, on light the model did not make: diffusion's fit of this
     # cube reads C_he 65% and C_m 14% off, and with diffusion's floors σ covered 15–61% of the pixels
     from skinlayers.demo import map_errors, scored_pixels, sigma_coverage
-    from skinlayers.model.maps_io import read_maps
+    from skinlayers.model.patch.maps_io import read_maps
     from skinlayers.reconstruct import fit_cube, load_fit_settings
 
     fit = fit_cube(cube, load_fit_settings(None, model={"profiles": "transport"}), device="cpu")

@@ -112,7 +112,7 @@ def test_a_transport_session_goes_through_calibration_and_the_fit(tmp_path, run_
     assert code == 0, err
     code, _, err = run_cli("reconstruct", str(session), "--device", "cpu")
     assert code == 0, err
-    from skinlayers.model.maps_io import read_maps
+    from skinlayers.model.patch.maps_io import read_maps
 
     maps = read_maps(tmp_path / "arm_reconstruction" / "maps.exr")
     fit = json.loads((tmp_path / "arm_reconstruction" / "fit.json").read_text())

@@ -22,12 +22,12 @@ import numpy as np
 import torch
 from pydantic import AfterValidator, Field, model_validator
 
-from ...model.maps import SkinMaps
-from ...model.params import PARAMETER_BOUNDS, PARAMETER_NAMES, TABLE2
+from ...model.patch.maps import SkinMaps
+from ...model.optics.params import PARAMETER_BOUNDS, PARAMETER_NAMES, TABLE2
 from ...formats.errors import SettingsError
 from ...formats.settings import Strict, load_settings, validate_settings
 from ...model.settings import SkinOptics
-from ...model.spectra import chromophore_spectra
+from ...model.optics.spectra import chromophore_spectra
 
 __all__ = ["SceneConfig", "SceneError", "SkinScene", "load_scene", "scene_from_dict"]
 

@@ -33,10 +33,10 @@ import torch
 from ...formats.exr import write_spectral
 from ...formats.files import atomic_write
 from ...formats.resources import require_memory
-from ...model.illumination import Light
-from ...model.maps import SkinMaps
-from ...model.maps_io import write_maps
-from ...model.renderer import SkinRenderer, render_bytes
+from ...model.render.illumination import Light
+from ...model.patch.maps import SkinMaps
+from ...model.patch.maps_io import write_maps
+from ...model.render.renderer import SkinRenderer, render_bytes
 from ...model.transport import BYTES_PER_PHOTON, TransportRenderer
 from ...model.settings import ModelSettings
 from ._optics import (BandSpectrum, CameraGeometry, band_spectrum, bilinear, gaussian_blur, sample_points, sensor_geometry,

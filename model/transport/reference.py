@@ -28,14 +28,14 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..illumination import Light
-from ..maps import SkinMaps
-from ..params import SkinParams, layer_absorption
-from ..radiometry import entry_transmittance, exit_factor
+from ..render.illumination import Light
+from ..patch.maps import SkinMaps
+from ..optics.params import SkinParams, layer_absorption
+from ..optics.radiometry import entry_transmittance, exit_factor
 from ...formats.errors import InputError
 from ..settings import MAX_PHOTONS, MIN_PHOTONS, PHYSICS, ModelSettings
-from ..specular import torrance_sparrow_factor
-from ..spectra import chromophore_spectra
+from ..optics.specular import torrance_sparrow_factor
+from ..optics.spectra import chromophore_spectra
 from .walk import Medium, walk
 
 __all__ = ["BYTES_PER_PHOTON", "TransportRenderer", "TransportResult", "TransportTotals", "Y_INVARIANT_LIGHTS", "check_physics_options"]

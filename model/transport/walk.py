@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..fresnel import fresnel_reflectance
+from ..optics.fresnel import fresnel_reflectance
 
 __all__ = ["Medium", "Tally", "walk"]
 

@@ -17,7 +17,7 @@ closed-form totals, no tables): exact for homogeneous skin, and the correction's
 is far below the render's.
 
 ``homogeneous_jacobian`` is each pixel's *homogeneous* model — the renderer's uniform-light limit,
-R_d(p) times the exit factor (``model/radiometry.py``), from the renderer's own tables — and its
+R_d(p) times the exit factor (``model/optics/radiometry.py``), from the renderer's own tables — and its
 Jacobian with respect to the unknowns, by reverse-mode autodiff (``least_squares.reverse_jacobian``),
 batched over pixels: the cheap per-pixel curvature of the Gauss–Newton methods (``optimizers.py``).
 
@@ -38,10 +38,10 @@ import torch
 import torch.autograd.forward_ad as fwAD
 
 from ...model import SkinParams
-from ...model.illumination import Light
-from ...model.maps import SkinMaps
-from ...model.radiometry import exit_factor
-from ...model.renderer import SkinRenderer
+from ...model.render.illumination import Light
+from ...model.patch.maps import SkinMaps
+from ...model.optics.radiometry import exit_factor
+from ...model.render.renderer import SkinRenderer
 from .grids import MapLayout
 from .least_squares import reverse_jacobian
 from .unknowns import Level, extend, extension_index, params_of_rows, to_params

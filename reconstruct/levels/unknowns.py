@@ -12,7 +12,7 @@ Extension. Pixels left out of the loss (outside the cube's mask: the window's ed
 dark pixels) still scatter light into visible ones. Their parameters are those of the nearest visible
 pixel (DWRR08 §6.3 copies them after every step); here the copy is an index gather inside the graph,
 so gradients reach the visible pixel they follow. The renderer pads the occluded border by replicating
-the grid's edge (``model/renderer.py``: ``F.pad(..., mode="replicate")``, also inside the graph), and the
+the grid's edge (``model/render/renderer.py``: ``F.pad(..., mode="replicate")``, also inside the graph), and the
 edge pixels already carry their nearest visible pixel's values: the border follows the nearest visible
 pixel, as in the paper, without any copy between steps.
 

@@ -11,7 +11,7 @@ import torch
 
 from ...formats.cube import Cube
 from ...model import N_PARAMS, PARAMETER_NAMES
-from ...model.maps import SkinMaps
+from ...model.patch.maps import SkinMaps
 from ..diagnosis.checks import (DataChecks, band_bias, band_bias_notes, flag_value, precision_notes, residual_notes,
                      smooth_band_notes)
 from .gauss_newton import curvature_and_columns, level_step

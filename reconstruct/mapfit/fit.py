@@ -29,10 +29,10 @@ import torch.nn.functional as F
 from ...formats.cube import Cube
 from ...formats.errors import InputError
 from ...model import N_PARAMS
-from ...model.maps import SkinMaps
+from ...model.patch.maps import SkinMaps
 from ...formats.resources import require_memory
 from ...formats.threads import library_threads
-from ...model.renderer import SkinRenderer, render_bytes
+from ...model.render.renderer import SkinRenderer, render_bytes
 from ..diagnosis.absorbers import AbsorberFit, candidate_rows, fit_grey_absorbance
 from ..diagnosis.checks import DataChecks, check_cube
 from .detour import homogeneous_fit

@@ -26,7 +26,7 @@ from ...formats.files import atomic_write
 from ...formats.outputs import claim_outputs
 from ...formats.version import software_version
 from ...model import PARAMETER_NAMES
-from ...model.maps_io import write_maps
+from ...model.patch.maps_io import write_maps
 from ..diagnosis.checks import FLAG_BITS
 from ..mapfit.fit import MapFit, fit_cube
 from ..settings import FitSettings

@@ -30,8 +30,8 @@ from typing import Callable
 import torch
 
 from ...model import N_PARAMS, PARAMETER_NAMES, SkinModel, SkinParams, parameter_bounds
-from ...model.point_tables import PointTables
-from ...model.radiometry import specular_reflectance
+from ...model.column.point_tables import PointTables
+from ...model.optics.radiometry import specular_reflectance
 from ..levels.least_squares import LAMBDA0, LAMBDA_MAX, damped_step, forward_jacobian, next_damping, predicted_decrease
 from ..levels.unknowns import near_bound
 

@@ -3,7 +3,7 @@
 DWRR08 fits five chromophores with the epidermis's thickness, the dermal blood's oxygenation and the
 dermis's scattering fixed (§5.1); a spectrum may support freeing some of them, and another may not.
 ``select_spectrum_models`` fits every candidate (the fixed model, then each subset of the freeable
-constants, ``model/point_model.py``) and keeps, per spectrum, the one with the least Bayesian
+constants, ``model/column/point_model.py``) and keeps, per spectrum, the one with the least Bayesian
 information criterion (Schwarz 1978)
 
     noise σ known:   BIC = RSS/σ² + k ln n
@@ -37,7 +37,7 @@ from pydantic import field_validator
 
 from ...formats.settings import Strict, load_settings
 from ...model import N_PARAMS, PARAMETER_NAMES, SkinModel, SkinParams, parameter_bounds
-from ...model.point_model import CONSTANT_NAMES, constant_bounds, constant_defaults, point_reflectance
+from ...model.column.point_model import CONSTANT_NAMES, constant_bounds, constant_defaults, point_reflectance
 from ..levels.least_squares import forward_jacobian
 from ..settings import FitSettingsError
 from .spectrum_fit import (

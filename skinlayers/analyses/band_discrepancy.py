@@ -122,8 +122,8 @@ def _chunks(filters: Sequence) -> list[list]:
 def _fit_render(maps, rig, filters) -> torch.Tensor:
     """The fit's renderer (default settings) at ``maps`` on the cube grid through each filter ``(F, H, W)``:
     its three nodes per band and their weights, the window lit, seen from the rig's camera."""
-    from ..model.illumination import Light  # noqa: PLC0415
-    from ..model.renderer import SkinRenderer  # noqa: PLC0415
+    from ..model.render.illumination import Light  # noqa: PLC0415
+    from ..model.render.renderer import SkinRenderer  # noqa: PLC0415
     from ..model.settings import ModelSettings  # noqa: PLC0415
     from ..reconstruct.levels.problem import BAND_WEIGHTS, band_nodes  # noqa: PLC0415
 
@@ -148,7 +148,7 @@ def discrepancy(rig, filters: Sequence, *, simulation=None, seed: int = DISCREPA
     from .truths import demo_scene  # noqa: PLC0415
     from ..formats.files import atomic_write  # noqa: PLC0415
     from ..model.settings import ModelSettings  # noqa: PLC0415
-    from ..model.tables import default_cache_dir  # noqa: PLC0415
+    from ..model.column.tables import default_cache_dir  # noqa: PLC0415
 
     filters = list(dict.fromkeys(filters))
     settings = simulation if simulation is not None else load_simulation_settings(None)

@@ -224,8 +224,8 @@ def weighted_jacobian(skins: torch.Tensor, nodes_nm: torch.Tensor, weights: torc
     weighted sum over its wavelengths (``nodes_nm``, ``weights`` ``(F, K)``, weights summing to 1), times
     the camera's exit factor; and its derivative ``(M, F, 5)`` in the bound's parameters."""
     from ..model import SkinModel  # noqa: PLC0415
-    from ..model.params import SkinParams  # noqa: PLC0415
-    from ..model.radiometry import exit_factor  # noqa: PLC0415
+    from ..model.optics.params import SkinParams  # noqa: PLC0415
+    from ..model.optics.radiometry import exit_factor  # noqa: PLC0415
     from ..model.settings import ModelSettings  # noqa: PLC0415
 
     model = SkinModel(ModelSettings())

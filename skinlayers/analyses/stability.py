@@ -337,7 +337,7 @@ def _against_truth(fit, session: Path, truth_r: torch.Tensor, clean_cube: Path, 
     over the camera's noise (``clean_cube``'s difference from the truth, times ``noise_scale``)."""
     from ..demo import map_errors, scored_pixels, sigma_coverage  # noqa: PLC0415
     from ..formats.cube import read_cube  # noqa: PLC0415
-    from ..model.maps_io import read_maps  # noqa: PLC0415
+    from ..model.patch.maps_io import read_maps  # noqa: PLC0415
     from ..reconstruct.diagnosis.checks import FLAG_BITS  # noqa: PLC0415
 
     truth = read_maps(session / "truth" / "maps.exr")

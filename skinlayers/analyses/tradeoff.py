@@ -221,7 +221,7 @@ def _spec_of(case: dict) -> SessionSpec:
 def _render(scene, over: dict, device: str) -> torch.Tensor:
     """``scene``'s exitance ``(L, H, W)`` by the renderer with ``over`` (``ForwardScene.render_maps``)."""
     from ..model import ModelSettings  # noqa: PLC0415
-    from ..model.renderer import SkinRenderer  # noqa: PLC0415
+    from ..model.render.renderer import SkinRenderer  # noqa: PLC0415
     from .truths import FORWARD_WAVELENGTHS_NM  # noqa: PLC0415
 
     dtype = torch.float64 if over.get("dtype") == "float64" else torch.float32
@@ -299,7 +299,7 @@ def _against_truth(fit, cube, session: Path, k: int) -> dict:
 
     from ..demo import map_errors, scored_pixels, sigma_coverage  # noqa: PLC0415
     from ..formats.exr import read_spectral  # noqa: PLC0415
-    from ..model.maps_io import read_maps  # noqa: PLC0415
+    from ..model.patch.maps_io import read_maps  # noqa: PLC0415
 
     keep = scored_pixels(fit.flags.cpu())
     truth = read_maps(session / "truth" / "maps.exr")

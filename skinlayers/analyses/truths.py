@@ -109,7 +109,7 @@ class ForwardScene:
     def render_maps(self):
         """The maps the renderer draws: a y-invariant row repeated over ``RENDER_ROWS`` rows (the renderer
         needs rows for its blurs; ``scene_profile`` takes the middle one), the window scene as it is."""
-        from ..model.maps import SkinMaps  # noqa: PLC0415
+        from ..model.patch.maps import SkinMaps  # noqa: PLC0415
 
         m = self.maps
         if not self.profile:
@@ -126,8 +126,8 @@ def _x(width_px: int) -> torch.Tensor:
 def forward_scene(name: str) -> ForwardScene:
     """The scene ``name`` of ``FORWARD_SCENES`` (float64 maps)."""
     from ..model import TABLE2  # noqa: PLC0415
-    from ..model.illumination import Light  # noqa: PLC0415
-    from ..model.maps import SkinMaps  # noqa: PLC0415
+    from ..model.render.illumination import Light  # noqa: PLC0415
+    from ..model.patch.maps import SkinMaps  # noqa: PLC0415
 
     base = TABLE2["III interior"]
     if name not in FORWARD_SCENES:

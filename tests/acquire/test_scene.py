@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from skinlayers.acquire.simulator.scene import SceneConfig, SceneError, SkinScene, load_scene, scene_from_dict
-from skinlayers.model.params import PARAMETER_NAMES, TABLE2
-from skinlayers.model.spectra import chromophore_spectra
+from skinlayers.model.optics.params import PARAMETER_NAMES, TABLE2
+from skinlayers.model.optics.spectra import chromophore_spectra
 
 WL = torch.tensor([450.0, 550.0, 650.0], dtype=torch.float64)
 CHANNELS = (*PARAMETER_NAMES,)

@@ -14,8 +14,8 @@ from skinlayers.acquire.hardware.rig import load_rig
 from skinlayers.acquire.simulator.scene import scene_from_dict
 from skinlayers.acquire.simulator.simulated import SimulatedBench
 from skinlayers.acquire.simulator.simulation_settings import SimulationError, simulation_from_dict
-from skinlayers.model.illumination import Light
-from skinlayers.model.maps_io import read_maps
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.patch.maps_io import read_maps
 from skinlayers.formats.exr import read_spectral
 
 BANDS = [{"wavelength_nm": 550, "filter_position": 2, "iso": 200}, {"wavelength_nm": 650, "filter_position": 3, "iso": 400}]

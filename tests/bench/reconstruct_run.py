@@ -56,7 +56,7 @@ def main(cfg: dict) -> dict:
     syn = cube_for(cfg)
     settings = FitSettings(**cfg.get("settings", {}))
     if cfg.get("warm_tables", True):  # table building is a one-off cost (cached on disk), not the fit's
-        from skinlayers.model.renderer import SkinRenderer
+        from skinlayers.model.render.renderer import SkinRenderer
 
         SkinRenderer(settings.model).model.tables(syn.cube.wavelength_nm)
     base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -13,10 +13,10 @@ import time
 import torch
 
 from skinlayers.model import ModelSettings, TableSettings
-from skinlayers.model.illumination import Light
-from skinlayers.model.memory import trim_heap_on_free
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.renderer import SkinRenderer
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.render.memory import trim_heap_on_free
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.render.renderer import SkinRenderer
 from skinlayers.model.settings import RenderSettings
 
 

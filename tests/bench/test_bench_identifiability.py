@@ -21,9 +21,9 @@ import torch
 
 from skinlayers.acquire.simulator.scene import SkinScene, scene_from_dict
 from skinlayers.model import PARAMETER_NAMES, ModelSettings
-from skinlayers.model.illumination import Light
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.renderer import SkinRenderer
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.render.renderer import SkinRenderer
 
 from bench_io import write_csv
 

@@ -71,7 +71,7 @@ def _errors(fit, session: Path, cube) -> dict:
 
     from skinlayers.model import PARAMETER_NAMES
     from skinlayers.formats.exr import read_exr
-    from skinlayers.model.maps_io import read_maps
+    from skinlayers.model.patch.maps_io import read_maps
     from skinlayers.reconstruct.diagnosis.checks import FLAG_BITS
 
     truth = read_maps(session / "truth" / "maps.exr")

@@ -24,8 +24,8 @@ import pytest
 import torch
 
 from skinlayers.model import PARAMETER_NAMES, TABLE2, ColourConverter, ModelSettings, SkinModel, SkinParams
-from skinlayers.model.colour import delta_e_2000
-from skinlayers.model.tables import build_profile_tables
+from skinlayers.model.optics.colour import delta_e_2000
+from skinlayers.model.column.tables import build_profile_tables
 from skinlayers.reconstruct import fit_spectra
 from skinlayers.reconstruct.spectrum.spectra_io import read_spectra_csv
 

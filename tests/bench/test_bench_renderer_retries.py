@@ -24,7 +24,7 @@ MAPS = ("C_m", "beta_m", "C_he", "C_hd")
 
 def test_renderer_retries_none_against_four():
     from skinlayers.demo import scored_pixels, sigma_coverage
-    from skinlayers.model.maps_io import read_maps
+    from skinlayers.model.patch.maps_io import read_maps
     from skinlayers.reconstruct.settings import FitSettings
 
     rows = []

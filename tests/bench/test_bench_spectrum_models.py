@@ -21,7 +21,7 @@ import pytest
 import torch
 
 from skinlayers.model import ModelSettings, SkinModel, SkinParams
-from skinlayers.model.point_model import point_reflectance
+from skinlayers.model.column.point_model import point_reflectance
 from skinlayers.reconstruct import fit_spectra, select_spectrum_models
 from skinlayers.reconstruct.spectrum.spectra_io import read_spectra_csv
 from skinlayers.reconstruct.spectrum.spectrum_models import candidate_label

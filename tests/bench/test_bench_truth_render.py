@@ -26,8 +26,8 @@ def test_truth_render_per_node_in_slabs_against_at_once(monkeypatch):
     from skinlayers.acquire.simulator.scene import SceneConfig
     from skinlayers.acquire.simulator.simulated import SimulatedBench
     from skinlayers.analyses.truths import demo_scene, session_rig
-    from skinlayers.model import blur
-    from skinlayers.model.illumination import Light
+    from skinlayers.model.render import blur
+    from skinlayers.model.render.illumination import Light
 
     cube = int(os.environ.get("SKINLAYERS_BENCH_CUBE", "256"))
     rig = session_rig(cube)

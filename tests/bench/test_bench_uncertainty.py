@@ -34,7 +34,7 @@ SEEDS = (0, 1, 2)
 def _coverage(folder: Path, seed: int) -> list[dict]:
     from skinlayers.formats.exr import read_exr
     from skinlayers.model import PARAMETER_NAMES
-    from skinlayers.model.maps_io import read_maps
+    from skinlayers.model.patch.maps_io import read_maps
     from skinlayers.reconstruct.diagnosis.checks import FLAG_BITS
     from skinlayers.reconstruct.diagnosis.uncertainty import MODEL_FLOOR, MODEL_FLOOR_ABSOLUTE, floor_for_coverage
 

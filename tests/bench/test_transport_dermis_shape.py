@@ -20,9 +20,9 @@ import torch
 from bench_io import write_csv
 
 from skinlayers.model import TABLE2, ModelSettings
-from skinlayers.model.fresnel import fresnel_reflectance
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.profiles import dipole_profile
+from skinlayers.model.optics.fresnel import fresnel_reflectance
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.column.profiles import dipole_profile
 from skinlayers.model.transport import Medium, TransportRenderer, walk
 
 pytestmark = pytest.mark.bench

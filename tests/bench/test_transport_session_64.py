@@ -70,7 +70,7 @@ def test_the_model_floor_of_each_physics_on_the_monte_carlos_light():
     from skinlayers.demo import _on_fit_grid, scored_pixels
     from skinlayers.formats.cube import read_cube
     from skinlayers.model import PARAMETER_NAMES
-    from skinlayers.model.maps_io import read_maps
+    from skinlayers.model.patch.maps_io import read_maps
     from skinlayers.reconstruct import fit_cube, load_fit_settings
     from skinlayers.reconstruct.diagnosis.uncertainty import MODEL_FLOOR_ABSOLUTE, MODEL_FLOORS, floor_for_coverage
 

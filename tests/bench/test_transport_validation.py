@@ -28,7 +28,7 @@ import transport_reference as ref
 from bench_io import write_csv
 
 from skinlayers.model import TABLE2, ModelSettings, SkinModel, SkinParams
-from skinlayers.model.radiometry import entry_transmittance
+from skinlayers.model.optics.radiometry import entry_transmittance
 from skinlayers.model.transport import Medium, TransportRenderer, walk
 
 pytestmark = pytest.mark.bench

@@ -21,9 +21,9 @@ import torch
 from bench_io import write_csv
 
 from skinlayers.model import TABLE2, ModelSettings
-from skinlayers.model.illumination import Light
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.renderer import SkinRenderer
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.render.renderer import SkinRenderer
 from skinlayers.model.transport import TransportRenderer
 
 pytestmark = pytest.mark.bench

@@ -153,7 +153,7 @@ def test_the_rigs_filter_widths_reach_the_fit(session_copy, tmp_path):
     import torch
 
     from skinlayers.formats.manifest import read_manifest, write_manifest
-    from skinlayers.model.renderer import SkinRenderer
+    from skinlayers.model.render.renderer import SkinRenderer
     from skinlayers.reconstruct.mapfit.fit import band_fwhm_of, view_angle_of
     from skinlayers.reconstruct.levels.problem import LevelProblem
     from skinlayers.reconstruct.settings import FitSettings

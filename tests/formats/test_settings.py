@@ -67,7 +67,7 @@ def test_every_parts_errors_share_the_base():
     from skinlayers.formats.cube import CubeError
     from skinlayers.formats.manifest import ManifestError
     from skinlayers.model import SettingsError as ModelSettingsError
-    from skinlayers.model.maps import MapsError
+    from skinlayers.model.patch.maps import MapsError
     from skinlayers.reconstruct import FitSettingsError
     from skinlayers.reconstruct.spectrum.spectra_io import SpectraFileError
 

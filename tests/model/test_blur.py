@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from skinlayers.model import blur
-from skinlayers.model.blur import BlurPlan, blur_stack
+from skinlayers.model.render import blur
+from skinlayers.model.render.blur import BlurPlan, blur_stack
 
 
 @pytest.fixture

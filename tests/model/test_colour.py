@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from skinlayers.model import PARAMETER_NAMES, TABLE2, ColourConverter, ModelSettings, SkinModel, SkinParams, ita_degrees
-from skinlayers.model.colour import delta_e_2000
+from skinlayers.model.optics.colour import delta_e_2000
 
 colour = pytest.importorskip("colour")
 

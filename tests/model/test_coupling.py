@@ -15,9 +15,9 @@ import pytest
 import torch
 
 from skinlayers.model import TABLE2, ModelSettings
-from skinlayers.model.illumination import Light
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.renderer import SkinRenderer, segment_mixture
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.render.renderer import SkinRenderer, segment_mixture
 
 F64 = torch.float64
 MC_SCENES = Path(__file__).resolve().parents[1] / "data" / "transport_scenes_mc.csv"

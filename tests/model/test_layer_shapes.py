@@ -1,4 +1,4 @@
-"""The transport shapes (model/layer_shapes.py): the shipped tables against fresh walks of the project's
+"""The transport shapes (model/column/layer_shapes.py): the shipped tables against fresh walks of the project's
 Monte Carlo, their closed-form unscattered part against the walk's, and the line-spread fit against
 a Gaussian mixture whose weights are known."""
 
@@ -12,7 +12,7 @@ import torch
 from scipy.special import erf
 
 from skinlayers.model import ModelSettings
-from skinlayers.model import layer_shapes as ls
+from skinlayers.model.column import layer_shapes as ls
 from skinlayers.model.transport import Medium, walk
 
 F64 = torch.float64

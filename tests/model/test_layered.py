@@ -19,7 +19,7 @@ from skinlayers.model import (
     inverse_hankel,
     multipole_totals,
 )
-from skinlayers.model.radiometry import entry_transmittance
+from skinlayers.model.optics.radiometry import entry_transmittance
 
 WL8 = torch.tensor(ModelSettings().render_wavelengths_nm, dtype=torch.float64)
 

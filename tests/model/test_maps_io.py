@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from skinlayers.model.edits import add_absorbance, apply_edit, scale_chromophore, swap_chromophore
-from skinlayers.model.maps import MapsError, SkinMaps
+from skinlayers.model.patch.edits import add_absorbance, apply_edit, scale_chromophore, swap_chromophore
+from skinlayers.model.patch.maps import MapsError, SkinMaps
 from skinlayers.formats.maps import read_absorbance
-from skinlayers.model.maps_io import read_maps, write_maps
+from skinlayers.model.patch.maps_io import read_maps, write_maps
 from skinlayers.formats.exr import read_spectral, write_exr, write_spectral
 
 GOOD = dict(C_m=0.02, beta_m=0.5, C_he=0.002, C_bc=0.001, C_hd=0.006)

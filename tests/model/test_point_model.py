@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from skinlayers.model import PARAMETER_NAMES, TABLE2, SkinModel, SkinParams, multipole_totals
-from skinlayers.model.point_model import CONSTANT_NAMES, constant_bounds, constant_defaults, point_reflectance
+from skinlayers.model.column.point_model import CONSTANT_NAMES, constant_bounds, constant_defaults, point_reflectance
 
 WL = torch.linspace(400.0, 700.0, 11, dtype=torch.float64)
 

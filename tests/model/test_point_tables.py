@@ -1,4 +1,4 @@
-"""Point tables (model/point_tables.py): the tabulated homogeneous model against the exact one it
+"""Point tables (model/column/point_tables.py): the tabulated homogeneous model against the exact one it
 stands for (value and Jacobian, diffusion and transport), and the closed-form absorption Jacobian
 against forward-mode autodiff of Eq. 11–12."""
 
@@ -9,8 +9,8 @@ import torch
 import torch.autograd.forward_ad as fwAD
 
 from skinlayers.model import N_PARAMS, ModelSettings, SkinModel, SkinParams, parameter_bounds
-from skinlayers.model.params import layer_absorption, layer_absorption_jacobian
-from skinlayers.model.point_tables import POINT_TABLE_NODES, PointTables
+from skinlayers.model.optics.params import layer_absorption, layer_absorption_jacobian
+from skinlayers.model.column.point_tables import POINT_TABLE_NODES, PointTables
 
 
 def random_params(n: int, seed: int) -> torch.Tensor:

@@ -29,7 +29,7 @@ from skinlayers.model import (
     multipole_profiles,
     multipole_totals,
 )
-from skinlayers.model.profiles import SlabOptics, multipole_pair_count
+from skinlayers.model.column.profiles import SlabOptics, multipole_pair_count
 
 F64 = torch.float64
 EPI_MM = 0.25

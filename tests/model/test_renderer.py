@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from skinlayers.model import TABLE2, ModelSettings, SkinModel, SkinParams
-from skinlayers.model.illumination import Light
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.radiometry import entry_transmittance
-from skinlayers.model.renderer import SkinRenderer
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.optics.radiometry import entry_transmittance
+from skinlayers.model.render.renderer import SkinRenderer
 from skinlayers.model.settings import RenderSettings
 
 F64 = torch.float64

@@ -54,9 +54,9 @@ from skinlayers.model import (
     multipole_profiles,
     multipole_totals,
 )
-from skinlayers.model import tables as tables_module
-from skinlayers.model.gaussians import plane_quadrature
-from skinlayers.model.tables import load_profile_tables
+from skinlayers.model.column import tables as tables_module
+from skinlayers.model.column.gaussians import plane_quadrature
+from skinlayers.model.column.tables import load_profile_tables
 
 #: The audit checks the Gaussian fits of the diffusion profiles; the transport tables are fitted to the
 #: Monte Carlo's line spreads (their transforms against those shapes: test_transport_profiles.py).

@@ -6,11 +6,11 @@ import pytest
 import torch
 
 from skinlayers.model import TABLE2, SkinModel, SkinParams, multipole_totals
-from skinlayers.model.illumination import Light
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.radiometry import entry_transmittance
-from skinlayers.model.renderer import SkinRenderer
-from skinlayers.model.thin import blend_thin, render_transmission
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.optics.radiometry import entry_transmittance
+from skinlayers.model.render.renderer import SkinRenderer
+from skinlayers.model.render.thin import blend_thin, render_transmission
 
 F64 = torch.float64
 WL = torch.tensor([450.0, 600.0, 700.0], dtype=F64)

@@ -1,4 +1,4 @@
-"""Rendering in tiles (``model/tiles.py``): the tiles cover the maps once, the plan fits the budget or
+"""Rendering in tiles (``model/render/tiles.py``): the tiles cover the maps once, the plan fits the budget or
 refuses up front, and the tiled image is the whole render's."""
 
 from __future__ import annotations
@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from skinlayers.model import TABLE2
-from skinlayers.model.illumination import Light
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.renderer import SkinRenderer
-from skinlayers.model.tiles import TooLargeError, plan_render, render_tiled, tiles
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.render.renderer import SkinRenderer
+from skinlayers.model.render.tiles import TooLargeError, plan_render, render_tiled, tiles
 
 WL = torch.tensor([450.0, 560.0, 670.0], dtype=torch.float64)
 MM = 0.05
@@ -105,7 +105,7 @@ def test_tiles_of_a_camera_sized_patch_match_the_whole_render_on_a_512_crop(rend
 
 
 def _uniform_maps_file(path, size: int, mm_per_pixel: float):
-    from skinlayers.model.maps_io import write_maps
+    from skinlayers.model.patch.maps_io import write_maps
 
     write_maps(path, SkinMaps.uniform(TABLE2["III interior"], (size, size), mm_per_pixel))
     return path
@@ -114,7 +114,7 @@ def _uniform_maps_file(path, size: int, mm_per_pixel: float):
 def test_render_refuses_maps_too_large_for_the_budget_before_reading_them(tmp_path, run_cli, monkeypatch):
     maps = _uniform_maps_file(tmp_path / "maps.exr", 64, 0.1)
     monkeypatch.setenv("SKINLAYERS_MEMORY_BUDGET_MB", "1")
-    monkeypatch.setattr("skinlayers.model.maps_io.read_maps", lambda *a, **k: pytest.fail("the maps were read"))
+    monkeypatch.setattr("skinlayers.model.patch.maps_io.read_maps", lambda *a, **k: pytest.fail("the maps were read"))
     code, _, err = run_cli("render", str(maps), "-o", str(tmp_path / "out"), "--bands", "560")
     assert code == 1 and "needs about" in err and "even in tiles of 64 px" in err, err
     assert not list(tmp_path.glob("out*")), "nothing written"

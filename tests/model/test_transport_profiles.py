@@ -1,4 +1,4 @@
-"""The transport-matched layer responses (``profiles: transport``, model/layer_totals.py) against truths
+"""The transport-matched layer responses (``profiles: transport``, model/column/layer_totals.py) against truths
 the model did not make: adding-doubling (iadpython) at points off the tables' grid and for whole
 two-layer stacks with the interface absorber, and the stored Monte Carlo of Table 2 with the paper's
 index step (tests/data/transport_table2_mc.csv, from tests/bench/test_transport_homogeneous.py).
@@ -17,10 +17,10 @@ import torch
 import transport_reference as ref  # tests/conftest.py puts tests/model on the path
 
 from skinlayers.model import TABLE2, ModelSettings, SkinModel, SkinParams
-from skinlayers.model import layer_totals as lt
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.illumination import Light
-from skinlayers.model.renderer import SkinRenderer
+from skinlayers.model.column import layer_totals as lt
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.render.renderer import SkinRenderer
 
 F64 = torch.float64
 TRANSPORT = ModelSettings(profiles="transport")
@@ -65,7 +65,7 @@ def test_epidermal_slab_within_two_percent_over_skin_absorption():
     epidermis's σs′ of 400, 550 and 700 nm, against adding-doubling through the tests' own reference
     (iadpython's single-layer doubling and slide, not the package's tables); diffusion is far off."""
     pytest.importorskip("iadpython")
-    from skinlayers.model.profiles import multipole_totals
+    from skinlayers.model.column.profiles import multipole_totals
 
     settings = ModelSettings.model_validate({"optics": {"n_dermis": 1.40, "interface_melanin_fraction": 0.0}})
     spectra = SkinModel(settings).spectra(torch.tensor([400.0, 550.0, 700.0], dtype=F64))

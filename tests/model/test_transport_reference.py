@@ -20,9 +20,9 @@ pytest.importorskip("iadpython")
 import transport_reference as ref
 
 from skinlayers.model import TABLE2, ModelSettings, SkinModel, SkinParams
-from skinlayers.model.illumination import Light
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.radiometry import entry_transmittance
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.optics.radiometry import entry_transmittance
 from skinlayers.model.transport import Medium, TransportRenderer, walk
 
 #: The 3-standard-error band every comparison must fall in.
@@ -222,7 +222,7 @@ def _diffuse_launch(medium: Medium, x_mm: float, pixel_mm: float, photons: int, 
     """Light from a Lambertian source in air along one column of a y-invariant medium (centred at
     ``x_mm``, ``pixel_mm`` wide): positions uniform across it, directions cosine-weighted in air,
     refracted in, weighted by the Fresnel transmittance; every exit tallied in its column."""
-    from skinlayers.model.fresnel import fresnel_reflectance
+    from skinlayers.model.optics.fresnel import fresnel_reflectance
 
     g = torch.Generator().manual_seed(seed)
     per = photons // batches
@@ -242,7 +242,7 @@ def test_reciprocity_between_two_columns_across_an_edge():
     measurements), 0.75 mm apart across an edge where one side has six times the melanin and an
     interface absorbance of 1 (A = e⁻¹, ink): an asymmetric error (the interface's transmittance taken
     at the wrong crossing, a lookup shifted by a pixel) breaks it."""
-    from skinlayers.model.edits import add_absorbance
+    from skinlayers.model.patch.edits import add_absorbance
 
     mm, w = 0.25, 12
     renderer = TransportRenderer(ModelSettings())

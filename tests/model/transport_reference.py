@@ -258,8 +258,8 @@ def _scalar(value: float):
 
 def diffusion_slab(layer: Layer, source_depth: str = "mean_free_path") -> tuple[float, float]:
     """Diffuse (R, T) of one slab of index 1.40 in air from the multipole: F_t(0)·(R⁺, T⁺)."""
-    from skinlayers.model.profiles import multipole_totals
-    from skinlayers.model.radiometry import entry_transmittance
+    from skinlayers.model.column.profiles import multipole_totals
+    from skinlayers.model.optics.radiometry import entry_transmittance
 
     tot = multipole_totals(
         _scalar(layer.sigma_a_per_mm), _scalar(layer.sigma_s_per_mm), layer.thickness_mm, N_SKIN, N_SKIN,
@@ -271,8 +271,8 @@ def diffusion_slab(layer: Layer, source_depth: str = "mean_free_path") -> tuple[
 
 def diffusion_semi_infinite(layer: Layer) -> float:
     """Diffuse reflectance of a half-space of index 1.40 under air from the dipole: F_t(0)·R_d."""
-    from skinlayers.model.profiles import dipole_total
-    from skinlayers.model.radiometry import entry_transmittance
+    from skinlayers.model.column.profiles import dipole_total
+    from skinlayers.model.optics.radiometry import entry_transmittance
 
     r_d = dipole_total(_scalar(layer.sigma_a_per_mm), _scalar(layer.sigma_s_per_mm), N_SKIN)
     return entry_transmittance(N_SKIN, 1.0) * float(r_d)
@@ -283,9 +283,9 @@ def diffusion_two_layer(epidermis: Layer, dermis: Layer, source_depth: str = "me
 
     ``dermis.thickness_mm`` is ignored (the model's dermis is semi-infinite); no interface absorber.
     """
-    from skinlayers.model.layered import LayerTransforms, combine_layers
-    from skinlayers.model.profiles import dipole_total, multipole_totals
-    from skinlayers.model.radiometry import entry_transmittance
+    from skinlayers.model.column.layered import LayerTransforms, combine_layers
+    from skinlayers.model.column.profiles import dipole_total, multipole_totals
+    from skinlayers.model.optics.radiometry import entry_transmittance
 
     epi = multipole_totals(
         _scalar(epidermis.sigma_a_per_mm), _scalar(epidermis.sigma_s_per_mm), epidermis.thickness_mm, N_SKIN, 1.0,

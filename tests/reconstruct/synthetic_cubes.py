@@ -29,9 +29,9 @@ import torch.nn.functional as F
 from skinlayers.acquire.simulator.scene import SkinScene, VariationConfig, scene_from_dict
 from skinlayers.formats.cube import Cube, CubeHeader
 from skinlayers.model import ModelSettings
-from skinlayers.model.illumination import Light
-from skinlayers.model.maps import SkinMaps
-from skinlayers.model.renderer import SkinRenderer
+from skinlayers.model.render.illumination import Light
+from skinlayers.model.patch.maps import SkinMaps
+from skinlayers.model.render.renderer import SkinRenderer
 
 RIG_BANDS_NM = (430.0, 460.0, 490.0, 520.0, 550.0, 580.0, 610.0, 640.0, 670.0)
 WINDOW_MM = 7.5

@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from skinlayers.model.maps_io import read_maps
+from skinlayers.model.patch.maps_io import read_maps
 from skinlayers.reconstruct.mapfit.fit import fit_cube
 from skinlayers.reconstruct.results.outputs import fit_summary, write_outputs
 from skinlayers.reconstruct.settings import FitSettings

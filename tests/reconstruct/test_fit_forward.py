@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from skinlayers.model import PARAMETER_NAMES
-from skinlayers.model.renderer import SkinRenderer
+from skinlayers.model.render.renderer import SkinRenderer
 from skinlayers.reconstruct.diagnosis.checks import check_cube
 from skinlayers.reconstruct.choice.fidelity import (
     CONSTANT_R, CROSSTALK_LIMIT, PATCH_MM, spatial_structure, uniform_light_factor, window_light_factor,
@@ -190,7 +190,7 @@ def test_a_map_at_its_bound_is_reported_undetermined(small_fit, small_fit_settin
     pixels is undetermined, with the reason, whatever its σ says."""
     import dataclasses
 
-    from skinlayers.model.maps import SkinMaps
+    from skinlayers.model.patch.maps import SkinMaps
     from skinlayers.reconstruct.results.outputs import fit_summary
 
     settings = FitSettings(**small_fit_settings)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from skinlayers.model import N_PARAMS, PARAMETER_NAMES, TABLE2
-from skinlayers.model.renderer import SkinRenderer
+from skinlayers.model.render.renderer import SkinRenderer
 from skinlayers.reconstruct.mapfit.gauss_newton import solve_step
 from skinlayers.reconstruct.levels.problem import LevelProblem
 from skinlayers.reconstruct.levels.unknowns import Level, from_params
@@ -94,8 +94,8 @@ def test_homogeneous_jacobian_matches_finite_differences(problem):
 
 def test_uniform_light_limit_matches_the_renderer():
     """The homogeneous model the curvature uses is the renderer's own uniform-light limit."""
-    from skinlayers.model.illumination import Light
-    from skinlayers.model.maps import SkinMaps
+    from skinlayers.model.render.illumination import Light
+    from skinlayers.model.patch.maps import SkinMaps
 
     renderer = SkinRenderer()
     params = TABLE2["IV exterior"]

@@ -14,7 +14,7 @@ from skinlayers.formats.cube import write_cube
 from skinlayers.cli import app
 from skinlayers.model import PARAMETER_NAMES
 from skinlayers.formats.exr import read_exr
-from skinlayers.model.maps_io import read_maps
+from skinlayers.model.patch.maps_io import read_maps
 from skinlayers.reconstruct.settings import FitSettings, FitSettingsError, load_fit_settings
 
 runner = CliRunner()

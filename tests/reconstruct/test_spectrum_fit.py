@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from skinlayers.model import N_PARAMS, PARAMETER_BOUNDS, PARAMETER_NAMES, SkinModel, SkinParams
-from skinlayers.model.point_model import constant_defaults, point_reflectance
+from skinlayers.model.column.point_model import constant_defaults, point_reflectance
 from skinlayers.reconstruct import fit_spectra
 from skinlayers.reconstruct.spectrum.spectrum_models import FIXED_MODELS, SpectrumModel, load_spectrum_model, select_spectrum_models
 from skinlayers.formats.errors import InputError

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from skinlayers.model import N_PARAMS, PARAMETER_NAMES
-from skinlayers.model.renderer import SkinRenderer
+from skinlayers.model.render.renderer import SkinRenderer
 from skinlayers.reconstruct.mapfit.gauss_newton import curvature_and_columns
 from skinlayers.reconstruct.levels.grids import MapLayout
 from skinlayers.reconstruct.levels.problem import LevelProblem

@@ -7,9 +7,9 @@ import re
 
 import torch
 
-from ..formats.errors import InputError
+from ...formats.errors import InputError
 from .maps import MapsError, SkinMaps
-from .params import PARAMETER_NAMES
+from ..optics.params import PARAMETER_NAMES
 
 __all__ = ["CHROMOPHORES", "add_absorbance", "apply_edit", "scale_chromophore", "swap_chromophore"]
 

@@ -11,8 +11,8 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from ..formats.maps import MAP_CHANNELS, MAX_MM_PER_PIXEL, MIN_MM_PER_PIXEL, MapsError
-from .params import PARAMETER_BOUNDS, PARAMETER_NAMES, SkinParams
+from ...formats.maps import MAP_CHANNELS, MAX_MM_PER_PIXEL, MIN_MM_PER_PIXEL, MapsError
+from ..optics.params import PARAMETER_BOUNDS, PARAMETER_NAMES, SkinParams
 
 __all__ = ["MAP_CHANNELS", "MapsError", "SkinMaps"]
 

@@ -138,7 +138,7 @@ def _separable(img: torch.Tensor, variance_px2: float, boundary: str, pixel: boo
     """Blur ``(N, H, W)`` by the discrete Gaussian of the given variance, separably, same size.
 
     Symmetric taps are applied as shifted sums (``k_j (x[i-j] + x[i+j])``): on CPUs this is much
-    faster than a one-channel ``conv2d`` (docs/renderer.md, "From model/blur.py"), and it is plain
+    faster than a one-channel ``conv2d`` (docs/renderer.md, "From model/render/blur.py"), and it is plain
     elementwise work on GPUs.
     """
     if variance_px2 <= 0:

@@ -29,12 +29,12 @@ import torch
 from .gaussians import gaussian_sum_hankel
 from .layer_shapes import shape_transforms
 from .layer_totals import collimated_transmission, handover_grid, handover_on_grid, layer_totals
-from .params import LayerAbsorption, SkinParams, layer_absorption
+from ..optics.params import LayerAbsorption, SkinParams, layer_absorption
 from .point_tables import PointTables
 from .profiles import multipole_hankel, multipole_totals
-from .radiometry import entry_transmittance
-from .settings import ModelSettings
-from .spectra import ChromophoreSpectra, chromophore_spectra
+from ..optics.radiometry import entry_transmittance
+from ..settings import ModelSettings
+from ..optics.spectra import ChromophoreSpectra, chromophore_spectra
 from .tables import ProfileTables, load_profile_tables
 
 __all__ = ["LayerTransforms", "SkinModel", "combine_layers", "inverse_hankel"]
@@ -188,7 +188,7 @@ class SkinModel:
         return LayerTransforms(epi[0], epi[1], epi[2], epi[3], r2, attenuation)
 
     def _transport_exact(self, ab: LayerAbsorption, s_epi, s_derm, d, k_per_mm):
-        """transport: adding-doubling's totals, the Monte Carlo's shapes (model/layer_shapes.py); the
+        """transport: adding-doubling's totals, the Monte Carlo's shapes (model/column/layer_shapes.py); the
         epidermis's four profiles and the dermis's R₂⁺."""
         o = self.settings.optics
         tt = layer_totals(ab.epidermis, s_epi, d, ab.dermis, s_derm, o.n_above, o.n_epidermis, o.n_dermis,

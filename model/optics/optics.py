@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from ..formats.settings import Strict
+from ...formats.settings import Strict
 
 __all__ = ["SkinOptics"]
 

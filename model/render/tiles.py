@@ -20,10 +20,10 @@ from typing import Callable, Iterator
 
 import torch
 
-from ..formats.errors import InputError
-from ..formats.resources import USABLE_SHARE, ResourceError, format_bytes
+from ...formats.errors import InputError
+from ...formats.resources import USABLE_SHARE, ResourceError, format_bytes
 from .illumination import Light
-from .maps import SkinMaps
+from ..patch.maps import SkinMaps
 from .renderer import SkinRenderer, render_bytes
 
 __all__ = ["MemoryPlan", "Tile", "TooLargeError", "plan_render", "render_tiled", "tiles"]

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..formats.errors import InputError
+from ...formats.errors import InputError
 
 __all__ = ["Light", "parse_light"]
 

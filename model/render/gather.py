@@ -62,7 +62,7 @@ class Lookup:
 class ColumnLookups:
     """One table position per pixel *and column*: ``index``/``frac`` ``(J, N, H, W)``, column 0 the
     identity (the pixel's own σa), column j the σa the light of that Gaussian meets on its way (the
-    ``segment`` coupling: model/renderer.py). Totals differ per column, so each column's weight is
+    ``segment`` coupling: model/render/renderer.py). Totals differ per column, so each column's weight is
     T(σ̄_j)·shape_j(σ̄_j). ``weights``: optionally those weights, dense ``(J, N, H, W)``, detached."""
 
     index: torch.Tensor

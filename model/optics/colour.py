@@ -20,7 +20,7 @@ import warnings
 import numpy as np
 import torch
 
-from ..formats.errors import InputError
+from ...formats.errors import InputError
 
 __all__ = ["ColourConverter", "delta_e_2000", "ita_degrees", "srgb_encode"]
 

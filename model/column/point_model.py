@@ -18,8 +18,8 @@ import dataclasses
 import torch
 
 from .layered import SkinModel, combine_layers
-from .params import SkinParams, layer_absorption
-from .radiometry import entry_transmittance
+from ..optics.params import SkinParams, layer_absorption
+from ..optics.radiometry import entry_transmittance
 
 __all__ = ["CONSTANT_BOUNDS", "CONSTANT_NAMES", "constant_bounds", "constant_defaults", "point_reflectance"]
 

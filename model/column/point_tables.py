@@ -25,8 +25,8 @@ from typing import Protocol
 
 import torch
 
-from .params import N_PARAMS, SkinParams, layer_absorption_jacobian, parameter_bounds
-from .radiometry import entry_transmittance
+from ..optics.params import N_PARAMS, SkinParams, layer_absorption_jacobian, parameter_bounds
+from ..optics.radiometry import entry_transmittance
 
 __all__ = ["POINT_TABLE_NODES", "ColumnModel", "PointTables"]
 

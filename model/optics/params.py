@@ -11,8 +11,8 @@ from typing import Mapping
 
 import torch
 
-from ..formats.errors import InputError
-from ..formats.maps import PARAMETER_NAMES
+from ...formats.errors import InputError
+from ...formats.maps import PARAMETER_NAMES
 from .spectra import ChromophoreSpectra
 
 __all__ = [

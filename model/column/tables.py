@@ -30,8 +30,8 @@ import torch
 from . import layer_shapes, layer_totals
 from .gaussians import fit_gaussian_weights, plane_quadrature
 from .profiles import dipole_profile, dipole_total, multipole_profiles, multipole_totals
-from .settings import ModelSettings
-from .spectra import chromophore_spectra
+from ..settings import ModelSettings
+from ..optics.spectra import chromophore_spectra
 
 __all__ = [
     "EPIDERMIS_PROFILES",

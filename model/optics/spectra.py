@@ -22,7 +22,7 @@ from importlib import resources
 import numpy as np
 import torch
 
-from ..formats.errors import InputError
+from ...formats.errors import InputError
 from .optics import SkinOptics
 
 __all__ = [
@@ -42,7 +42,7 @@ PER_CM_TO_PER_MM = 0.1
 
 @lru_cache(maxsize=None)
 def _table(name: str) -> np.ndarray:
-    text = resources.files(__package__).joinpath("data", name).read_text()
+    text = resources.files("skinlayers.model").joinpath("data", name).read_text()
     rows = [line for line in text.splitlines() if line and not line.startswith("#")]
     return np.array([[float(v) for v in row.split(",")] for row in rows[1:]])
 

@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import torch
 
-from .fresnel import extrapolation_factor
+from ..optics.fresnel import extrapolation_factor
 
 __all__ = [
     "LayerProfiles",

@@ -1,0 +1,1 @@
+"""The homogeneous column (DWRR08 §3–4): each layer's profiles (diffusion, or transport's adding-doubling totals and Monte Carlo shapes), their Gaussian sums and tables, the layered combination (Eq. 7) and the point model and tables the spectrum fit uses."""

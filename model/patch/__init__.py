@@ -1,0 +1,1 @@
+"""The parameter maps of a patch of skin: the maps, their files and their edits."""
