@@ -24,7 +24,7 @@ from ..settings import FitSettings
 from ..diagnosis.uncertainty import MODEL_FLOOR_ABSOLUTE, MODEL_FLOORS, crosstalk_ratio, model_floor, subnode_sd
 from ..levels.unknowns import dparams_dx, near_bound, to_params
 
-__all__ = ["cube_hairs", "finish_fit", "pixel_rms"]
+__all__ = ["cube_hairs", "cube_noise", "finish_fit", "pixel_rms"]
 
 #: The nodes' cluster-robust variance (``schur.marginal_variance``) sums the residual's pull over squares
 #: of this side: about the light's spread in red, the scale on which the model's error is correlated.
@@ -153,7 +153,7 @@ def _data_notes(problem: LevelProblem, checks: DataChecks, residual: torch.Tenso
     seen = problem.mask & ~checks.saturated.to(residual.device)
     bias = band_bias(residual, problem.level.target, used, seen)
     checks.warn(band_bias_notes(bias, problem.wavelength_nm.tolist()))
-    noise = _cube_noise(problem.level.target, seen)
+    noise = cube_noise(problem.level.target, seen)
     ratio = _residual_over_noise(residual, used, seen, noise)
     checks.warn(residual_notes(ratio))
     if noise is not None:
@@ -162,16 +162,15 @@ def _data_notes(problem: LevelProblem, checks: DataChecks, residual: torch.Tenso
     return bias, ratio
 
 
-def cube_hairs(cube: Cube, checks: DataChecks) -> HairFinding | None:
-    """The hairs in the cube (``hairs.py``) over the pixels the loss may use; None where the cube is too
-    small to estimate its noise."""
-    noise = _cube_noise(cube.reflectance, checks.fit_mask)
+def cube_hairs(cube: Cube, checks: DataChecks, noise: torch.Tensor | None) -> HairFinding | None:
+    """The hairs in the cube (``hairs.py``) over the pixels the loss may use, given the cube's ``noise``
+    (``cube_noise``); None where the cube is too small to estimate its noise."""
     if noise is None:
         return None
-    return find_hairs(cube.reflectance, cube.wavelength_nm.tolist(), checks.fit_mask, cube.mm_per_pixel, noise, checks.bands_used)
+    return find_hairs(cube.reflectance, cube.wavelength_nm.tolist(), checks.fit_mask, cube.mm_per_pixel, noise.cpu(), checks.bands_used)
 
 
-def _cube_noise(target: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor | None:
+def cube_noise(target: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor | None:
     """Each band's noise σ ``(L,)`` estimated from the cube itself (``band_noise``) over ``pixels`` ``(H, W)``;
     None where too few pixels have their neighbourhood in it."""
     try:

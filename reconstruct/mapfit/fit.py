@@ -36,9 +36,9 @@ from ...model.render.renderer import SkinRenderer, render_bytes
 from ..diagnosis.absorbers import AbsorberFit, candidate_rows, fit_grey_absorbance
 from ..diagnosis.checks import DataChecks, check_cube
 from .detour import homogeneous_fit
-from .finish import cube_hairs, finish_fit, pixel_rms
+from .finish import cube_hairs, cube_noise, finish_fit, pixel_rms
 from ..choice.fidelity import ForwardChoice
-from ..choice.grid_choice import band_noise, choose_map_grids
+from ..choice.grid_choice import choose_map_grids
 from .optimizers import METHODS, OptimResult
 from ..levels.problem import HomogeneousProblem, LevelProblem, RenderCounter
 from ..settings import FitSettings
@@ -199,11 +199,11 @@ class CubeFit:
         self.say = progress or (lambda event: None)
         self.renderer.model.tables(self.wl, progress=lambda j, n: self.say(FitEvent("tables", j, n)))
         self.target = cube.reflectance.to(device=self.device, dtype=self.dtype)
-        self.hairs = cube_hairs(cube, self.checks)
+        self.noise = cube_noise(self.target, self.checks.fit_mask.to(self.device))  # (L,) or None: too few pixels
+        self.hairs = cube_hairs(cube, self.checks, self.noise)
         self.levels = pyramid(self.target, self.checks.fit_mask.to(self.device), cube.mm_per_pixel, settings.coarsest_px)
         self.pixels = tuple(lv.shape[0] * lv.shape[1] for lv in self.levels)
-        self.band_weight = band_weights(self.target, self.checks.fit_mask.to(self.device), self.checks.bands_used,
-                                        settings.band_weighting)
+        self.band_weight = band_weights(self.noise, self.checks.bands_used, settings.band_weighting)
         self.counter = RenderCounter()
         self.records: list[dict] = []
         self.history: list[tuple[float, float, int]] = []
@@ -286,8 +286,11 @@ class CubeFit:
         return HomogeneousProblem(self.renderer, level, self.wl, self.band_weight, light_factor=light_factor, **kw)
 
     def noise_at(self, level) -> torch.Tensor:
-        """The cube's own noise per band ``(L,)`` at a level: each 2×2 mean halves white noise's σ."""
-        return band_noise(self.target, self.checks.fit_mask.to(self.device)) * (self.cube.mm_per_pixel / level.mm_per_pixel)
+        """The cube's own noise per band ``(L,)`` at a level: each 2×2 mean halves white noise's σ. Raises
+        ValueError where the cube has too few pixels to tell it."""
+        if self.noise is None:
+            raise ValueError("fewer than 16 pixels with their 3×3 neighbourhood in the mask")
+        return self.noise * (self.cube.mm_per_pixel / level.mm_per_pixel)
 
     def fit_level(self, i: int, problem: LevelProblem, x, log_scale, forward: str, method=None) -> OptimResult:
         """One level's fit and its robust refits, recorded (``records``, ``history``)."""
@@ -358,18 +361,15 @@ def _carry_weights(prev, problem: LevelProblem) -> torch.Tensor:
     return up[problem.pixels]
 
 
-def band_weights(target: torch.Tensor, mask: torch.Tensor, used: torch.Tensor, mode: str) -> torch.Tensor:
-    """Each band's weight in the loss ``(L,)`` float64 (zero for an unused band) for a cube ``(L, H, W)`` and
-    its fit ``mask`` ``(H, W)``: with ``mode`` noise, the typical band's noise over the band's own
-    (``band_noise``: the least-squares fit of unequal noise, the estimate σ describes), at most
-    ``NOISE_WEIGHT_MAX``; equal (or a cube too small to tell its noise): one for every used band."""
+def band_weights(noise: torch.Tensor | None, used: torch.Tensor, mode: str) -> torch.Tensor:
+    """Each band's weight in the loss ``(L,)`` float64 (zero for an unused band) from the cube's own ``noise``
+    ``(L,)`` (``finish.cube_noise``): with ``mode`` noise, the typical band's noise over the band's own (the
+    least-squares fit of unequal noise, the estimate σ describes), at most ``NOISE_WEIGHT_MAX``; equal (or
+    no noise: a cube too small to tell it): one for every used band."""
     weight = used.to(torch.float64).cpu()
-    if mode == "equal" or int(used.sum()) < 2:
+    if mode == "equal" or noise is None or int(used.sum()) < 2:
         return weight
-    try:
-        noise = band_noise(target, mask).cpu()
-    except ValueError:  # too few pixels to measure the noise: every band alike
-        return weight
+    noise = noise.double().cpu()
     typical = noise[used.cpu()].pow(2).mean().sqrt()
     return weight * (typical / noise).clamp(max=NOISE_WEIGHT_MAX)
 

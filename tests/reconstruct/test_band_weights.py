@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from skinlayers.formats.cube import Cube
+from skinlayers.reconstruct.choice.grid_choice import band_noise
 from skinlayers.reconstruct.mapfit.fit import NOISE_WEIGHT_MAX, band_weights, fit_cube
 from skinlayers.reconstruct.settings import BAND_WEIGHTS_BY_PROFILES, FitSettings
 
@@ -27,18 +28,19 @@ def test_weights_follow_the_measured_noise():
     cube = _noisy(clean, SIGMA, 1)
     mask = torch.ones(128, 128, dtype=torch.bool)
     used = torch.ones(9, dtype=torch.bool)
-    w = band_weights(cube, mask, used, "noise")
+    w = band_weights(band_noise(cube, mask), used, "noise")
     typical = SIGMA.pow(2).mean().sqrt()
     torch.testing.assert_close(w, (typical / SIGMA).clamp(max=NOISE_WEIGHT_MAX), rtol=0.05, atol=0)
     used[4] = False
-    w = band_weights(cube, mask, used, "noise")
+    w = band_weights(band_noise(cube, mask), used, "noise")
     assert w[4] == 0 and bool((w[used] > 0).all())
-    assert torch.equal(band_weights(cube, mask, used, "equal"), used.double())
+    assert torch.equal(band_weights(band_noise(cube, mask), used, "equal"), used.double())
+    assert torch.equal(band_weights(None, used, "noise"), used.double())  # a cube too small to tell its noise
 
 
 def test_a_band_without_noise_does_not_carry_the_fit():
     cube = _noisy(torch.full((3, 32, 32), 0.4, dtype=torch.float64), torch.tensor([0.01, 0.01, 1e-9], dtype=torch.float64), 2)
-    w = band_weights(cube, torch.ones(32, 32, dtype=torch.bool), torch.ones(3, dtype=torch.bool), "noise")
+    w = band_weights(band_noise(cube, torch.ones(32, 32, dtype=torch.bool)), torch.ones(3, dtype=torch.bool), "noise")
     assert float(w[2]) == NOISE_WEIGHT_MAX
 
 
