@@ -17,6 +17,7 @@ import torch
 import transport_reference as ref  # tests/conftest.py puts tests/model on the path
 
 from skinlayers.model import TABLE2, ModelSettings, SkinModel, SkinParams
+from skinlayers.model.column import adding_doubling as ad
 from skinlayers.model.column import layer_totals as lt
 from skinlayers.model.patch.maps import SkinMaps
 from skinlayers.model.render.illumination import Light
@@ -49,12 +50,12 @@ def test_slab_and_half_space_tables_match_adding_doubling_off_their_grid():
         ss = 5.0
         sa, d = ss * 10.0**x, 10.0**y / ss
         albedo, tau = 1.0 / (1.0 + 10.0**x), (sa + ss) * d
-        truth = np.array(lt.adding_doubling_slab(albedo, tau))
+        truth = np.array(ad.adding_doubling_slab(albedo, tau))
         tab = lt.slab_totals(_t(sa), _t(ss), d)
         got = np.array([float(tab.R_plus), float(tab.T_plus_diffuse), float(tab.R_minus), float(tab.T_minus)])
         keep = truth > 1e-6
         worst_slab = max(worst_slab, float(np.abs(got[keep] / truth[keep] - 1.0).max()))
-        half = np.array(lt.adding_doubling_half_space(albedo))
+        half = np.array(ad.adding_doubling_half_space(albedo))
         h = lt.half_space_totals(_t(sa), _t(ss))
         worst_half = max(worst_half, float(np.abs(np.array([float(h.R_collimated), float(h.R_diffuse)]) / half - 1.0).max()))
     assert worst_slab < 2e-3 and worst_half < 1e-4, (worst_slab, worst_half)
@@ -131,7 +132,7 @@ def test_handover_table_between_its_nodes():
     worst = {"angular": 0.0, "lambertian": 0.0}
     s1, s2 = 6.0, 3.0
     for x1, y1, x2 in zip(rng.uniform(-3.0, 0.5, 12), rng.uniform(-0.2, 0.6, 12), rng.uniform(-3.5, 0.5, 12)):
-        truth = lt.adding_doubling_two_layers(float(x1), float(y1), float(x2))
+        truth = ad.adding_doubling_two_layers(float(x1), float(y1), float(x2))
         for handover in worst:
             t = lt.layer_totals(_t(s1 * 10.0**x1), _t(s1), 10.0**y1 / s1, _t(s2 * 10.0**x2), _t(s2),
                                 1.0, lt.TABLE_N_LAYER, lt.TABLE_N_LAYER, handover)
