@@ -239,3 +239,39 @@ def test_a_study_list_may_not_repeat_or_take_the_tables_columns(tmp_path, header
 def test_an_unknown_group_is_refused_before_any_work(study, run_cli):
     code, _, err = run_cli("batch", str(study), "--group", "skin_type")
     assert code == 1 and "--group skin_type" in err and "subject" in err
+
+
+_FAULTS_PROBE = """
+import resource, sys
+import torch
+if sys.argv[1] == "1":
+    from skinlayers.studies.allocator import use_task_allocator
+    assert use_task_allocator()
+x = torch.ones(1 << 20)
+for _ in range(20):
+    x = x * 1.0001  # warm: every product is a fresh 4-MiB tensor, the one before freed
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(100):
+    x = x * 1.0001
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="glibc's malloc on Linux")
+def test_a_task_undoes_the_nannys_malloc_setting(tmp_path):
+    """Under Dask's ``MALLOC_TRIM_THRESHOLD_=65536`` every 4-MiB tensor is mapped anew (a page fault per
+    page); after ``use_task_allocator`` the heap serves them again, as in a plain process."""
+    import subprocess
+    import sys
+
+    from skinlayers.studies.allocator import use_task_allocator
+
+    assert not use_task_allocator({})  # a plain environment: nothing to undo
+    probe = tmp_path / "probe.py"
+    probe.write_text(_FAULTS_PROBE)
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536"}
+    faults = {fix: int(subprocess.run([sys.executable, str(probe), fix], env=env, capture_output=True, text=True,
+                                      check=True).stdout) for fix in ("0", "1")}
+    pages = 100 * (4 << 20) // 4096
+    assert faults["0"] > pages // 2, faults  # the setting's cost, as the nanny leaves it
+    assert faults["1"] < pages // 20, faults

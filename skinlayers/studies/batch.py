@@ -43,6 +43,7 @@ import typer
 from ..formats.cube import reconstruction_dir
 from ..formats.errors import InputError
 from ..formats.files import atomic_write
+from .allocator import use_task_allocator
 from .study import is_map_column, session_summary, study_record, without_nan, write_study_json, write_study_table
 
 __all__ = ["BatchOptions", "BatchResult", "SessionOutcome", "StudySession", "default_study_out", "process_session",
@@ -59,7 +60,8 @@ RESERVED_COLUMNS = ("status", "error", "seconds", "pixels")
 DEVICES = ("cpu", "cuda", "auto")
 #: Dask's nanny starts each worker with ``MALLOC_TRIM_THRESHOLD_=65536``, which fixes glibc's mmap threshold:
 #: every tensor temporary is then mapped and unmapped anew, and the fit slows down (docs/batch.md,
-#: "Workers started outside skinlayers"). Unset for our workers.
+#: "Workers started outside skinlayers"). Unset for our workers; a task on any other worker sets the allocator
+#: itself (``allocator.use_task_allocator``).
 WORKER_ENVIRON = {"MALLOC_TRIM_THRESHOLD_": None}
 #: Torch threads of each task: one per worker process, one worker per core (formats/threads.py says why).
 TASK_THREADS = 1
@@ -157,6 +159,7 @@ def process_session(session: StudySession, options: BatchOptions) -> SessionOutc
     start = time.perf_counter()
     outcome = SessionOutcome(session.name, "skipped", worker=_worker_name())
     try:
+        use_task_allocator()  # a worker started by hand runs with Dask's malloc setting: undo it (allocator.py)
         _task_threads(options)
         outcome.manifest = _manifest_columns(session.path)
         outcome.ran = _run_steps(session.path, options)

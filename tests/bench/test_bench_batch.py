@@ -109,3 +109,59 @@ def test_batch_throughput_against_workers():
         if "dask_overhead_per_task_s" in row and row["mode"] == "dask":
             row["overhead_share"] = round(row["dask_overhead_per_task_s"] / loop_task_s, 4)
     append_rows(out_dir() / "batch.csv", FIELDS, rows)
+
+
+def _wait_for(path: Path, what: str, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not path.is_file():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{what} did not start within {timeout_s:.0f} s")
+        time.sleep(0.2)
+
+
+def test_a_hand_started_worker_runs_at_a_plain_process_speed(tmp_path):
+    """Issue 58: a 64² session through ``batch --scheduler`` on a ``dask worker`` started by hand (with the
+    nanny's ``MALLOC_TRIM_THRESHOLD_=65536``, as Dask leaves it) against a plain ``skinlayers reconstruct``,
+    one thread each, side by side; rows ``hand_worker`` and ``plain`` in ``batch.csv`` (``wall_s``: the
+    command's or the batch's wall time, imports included on both sides)."""
+    import subprocess
+    import sys
+
+    from distributed import Client
+
+    from skinlayers.studies.batch import BatchOptions, read_study, run_batch
+
+    sessions = read_study(_sessions(1))[:1]
+    dask = [sys.executable, "-m"]
+    scheduler_file = tmp_path / "scheduler.json"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    procs = [subprocess.Popen([*dask, "distributed.cli.dask_scheduler", "--scheduler-file", str(scheduler_file),
+                               "--no-dashboard"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    rows = []
+    try:
+        _wait_for(scheduler_file, "dask scheduler")
+        procs.append(subprocess.Popen([*dask, "distributed.cli.dask_worker", "--scheduler-file", str(scheduler_file),
+                                       "--nthreads", "1", "--nworkers", "1", "--no-dashboard"], env=env,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        with Client(scheduler_file=str(scheduler_file), timeout="60s") as client:
+            client.wait_for_workers(1, timeout=60)
+            nanny_env = client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_"))
+            _fresh(sessions)
+            start = time.perf_counter()
+            result = run_batch(sessions, BatchOptions(steps=("reconstruct",), device="cpu"), tmp_path / "study", client=client)
+            rows.append({"mode": "hand_worker", "workers": 1, "sessions": 1, "wall_s": round(time.perf_counter() - start, 2),
+                         "first_task_s": round(result.outcomes[sessions[0].name].seconds, 2)})
+        assert result.count("done") == 1, [o.error for o in result.outcomes.values()]
+        assert set(nanny_env.values()) == {"65536"}, nanny_env  # the worker runs with the setting it is measured against
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+            p.wait(timeout=30)
+    _fresh(sessions)
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "skinlayers", "reconstruct", str(sessions[0].path), "--threads", "1", "--device", "cpu"],
+                   check=True, capture_output=True)
+    rows.append({"mode": "plain", "workers": 1, "sessions": 1, "wall_s": round(time.perf_counter() - start, 2)})
+    rows[0]["overhead_share"] = round(rows[0]["wall_s"] / rows[1]["wall_s"] - 1.0, 4)
+    append_rows(out_dir() / "batch.csv", FIELDS, rows)
+    print(rows)
