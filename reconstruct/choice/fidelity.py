@@ -29,13 +29,17 @@ from ..levels.grids import MapLayout
 from ..levels.problem import Evaluation, HomogeneousProblem, LevelProblem
 from ..levels.unknowns import to_params
 
-__all__ = ["CONSTANT_R", "CROSSTALK_LIMIT", "CrossTalkCheck", "ForwardChoice", "crosstalk_check", "spatial_structure",
+__all__ = ["CONSTANT_R", "CROSSTALK_LIMIT", "FORECAST_MARGIN", "CrossTalkCheck", "ForwardChoice", "crosstalk_check",
+           "crosstalk_forecast", "spatial_structure",
            "uniform_light_factor", "window_light_factor"]
 
 #: The homogeneous fit is kept where the renderer at its maps differs from it by at most this RMS, in
 #: units of each band's noise σ: the left-out cross-talk then adds at most 0.5² = a quarter to the
 #: noise's variance.
 CROSSTALK_LIMIT = 0.5
+#: The homogeneous detour is not tried where the cube's forecast cross-talk (``crosstalk_forecast``) is
+#: this many times the check's limit: the check would fail, after the detour's fits had been paid for.
+FORECAST_MARGIN = 2.0
 #: A map is fitted as one value for the patch where the homogeneous fit's values of it show less
 #: structure than noise: for a map smooth on the scale of neighbours, the correlation r of neighbouring
 #: values is the structure's share of their variance, so r < 1/2 says the variation a per-pixel map
@@ -74,28 +78,91 @@ def uniform_light_factor(problem: LevelProblem, x: torch.Tensor) -> torch.Tensor
     render of uniform skin under the level's light is one FFT of the lit window times R̂₁₂(|k|)/R₁₂(0)
     and the pixels' box, per band, from the renderer's own Gaussian tables. ``(L, H, W)``, the
     problem's dtype. Measured against the render it replaces (the pyramid blur): docs/reconstruct.md."""
-    h, w = problem.level.shape
-    mm = problem.level.mm_per_pixel
-    border = problem.light.border_px(mm, problem.renderer.settings.render.border_mm)
-    p = SkinParams(*to_params(_median_skin(problem, x).double()).unbind(0))
-    lit = problem.light.irradiance(h, w, border, mm, torch.float64, x.device)
-    # zero padding beyond the border: the renderer's scene is dark there too, and light that would wrap
-    # around the FFT's period has crossed the border and its dark beyond first
-    ny, nx = lit.shape[-2] + 2 * border, lit.shape[-1] + 2 * border
-    ky = 2.0 * math.pi * torch.fft.fftfreq(ny, d=mm, dtype=torch.float64, device=x.device)
-    kx = 2.0 * math.pi * torch.fft.rfftfreq(nx, d=mm, dtype=torch.float64, device=x.device)
-    kk = torch.sqrt(ky[:, None] ** 2 + kx[None, :] ** 2)
-    unique, inverse = torch.unique(kk.reshape(-1), return_inverse=True)
-    model = problem.renderer.model
-    wl = problem.wavelength_nm
-    transfer = model.combined_hankel(p, wl, unique, method="tables")  # (L, K)
-    total = model.total_reflectance(p, wl, method="tables")  # (L,)
-    transfer = (transfer / total[:, None])[:, inverse].reshape(-1, *kk.shape)
-    box = (torch.sinc(ky * mm / (2.0 * math.pi)) ** 2)[:, None] * (torch.sinc(kx * mm / (2.0 * math.pi)) ** 2)[None, :]
-    padded = torch.zeros(ny, nx, dtype=torch.float64, device=x.device)
-    padded[: lit.shape[-2], : lit.shape[-1]] = lit
-    out = torch.fft.irfft2(torch.fft.rfft2(padded) * transfer * box, s=(ny, nx))
-    return out[:, border: border + h, border: border + w].to(x.dtype).contiguous()
+    spread = _UniformSpread(problem, x)
+    return spread.lit_and_spread(1.0).to(x.dtype).contiguous()
+
+
+class _UniformSpread:
+    """The lateral spread of uniform skin (the median of ``x`` over the loss pixels) under the level's
+    light, in the Fourier domain: the lit window ``(H + 2B, W + 2B)`` with its border B, zero padded by B
+    more (the renderer's scene is dark beyond its border, and light that would wrap around the FFT's
+    period has crossed the border and its dark first), and per band the transfer R̂₁₂(|k|)/R₁₂(0) times the
+    pixels' box ``(L, ny, nx // 2 + 1)``."""
+
+    def __init__(self, problem: LevelProblem, x: torch.Tensor) -> None:
+        h, w = problem.level.shape
+        mm = problem.level.mm_per_pixel
+        self.h, self.w = h, w
+        self.border = border = problem.light.border_px(mm, problem.renderer.settings.render.border_mm)
+        p = SkinParams(*to_params(_median_skin(problem, x).double()).unbind(0))
+        self.lit = problem.light.irradiance(h, w, border, mm, torch.float64, x.device)
+        self.ny, self.nx = ny, nx = self.lit.shape[-2] + 2 * border, self.lit.shape[-1] + 2 * border
+        ky = 2.0 * math.pi * torch.fft.fftfreq(ny, d=mm, dtype=torch.float64, device=x.device)
+        kx = 2.0 * math.pi * torch.fft.rfftfreq(nx, d=mm, dtype=torch.float64, device=x.device)
+        kk = torch.sqrt(ky[:, None] ** 2 + kx[None, :] ** 2)
+        unique, inverse = torch.unique(kk.reshape(-1), return_inverse=True)
+        model, wl = problem.renderer.model, problem.wavelength_nm
+        transfer = model.combined_hankel(p, wl, unique, method="tables")  # (L, K)
+        total = model.total_reflectance(p, wl, method="tables")  # (L,)
+        transfer = (transfer / total[:, None])[:, inverse].reshape(-1, *kk.shape)
+        box = (torch.sinc(ky * mm / (2.0 * math.pi)) ** 2)[:, None] * (torch.sinc(kx * mm / (2.0 * math.pi)) ** 2)[None, :]
+        self.transfer = transfer * box
+
+    def lit_and_spread(self, reflectance: float | torch.Tensor) -> torch.Tensor:
+        """The light leaving each pixel of the window ``(L, H, W)`` where the skin's own reflectance
+        (relative to the median skin's: 1 for uniform skin) is ``reflectance`` — a number, or ``(L, H, W)``
+        over the window (the border's skin taken as the median's) — and every pixel spreads its light as
+        the median skin does."""
+        b = self.border
+        if isinstance(reflectance, torch.Tensor):  # each pixel its own: a field per band
+            field = self.lit.expand(self.transfer.shape[0], -1, -1).clone()
+            field[:, b: b + self.h, b: b + self.w] *= reflectance.to(field)
+        else:
+            field = self.lit * reflectance
+        padded = field.new_zeros(*field.shape[:-2], self.ny, self.nx)
+        padded[..., : field.shape[-2], : field.shape[-1]] = field
+        out = torch.fft.irfft2(torch.fft.rfft2(padded) * self.transfer, s=(self.ny, self.nx))
+        return out[:, b: b + self.h, b: b + self.w]
+
+    def noise_gain(self) -> torch.Tensor:
+        """Per band ``(L,)``, Σ (K − δ)² of the spread's kernel K on the pixel grid: the variance the
+        difference ``K * n − n`` takes from white noise n of unit variance."""
+        kernel = torch.fft.irfft2(self.transfer, s=(self.ny, self.nx))
+        kernel[:, 0, 0] -= 1.0
+        return kernel.pow(2).sum(dim=(-2, -1))
+
+
+def crosstalk_forecast(problem: LevelProblem, x: torch.Tensor, noise: torch.Tensor) -> float:
+    """What ``crosstalk_check`` would find, told from the cube alone (no fit, no render; FFTs only):
+    each pixel's own reflectance read as the cube over the window's light factor, the light it sends to
+    its neighbours spread as the median skin's, and the RMS of that render less the homogeneous model
+    (``K * (R·E) − R·(K * E)``, E the lit window) in units of each band's noise ``noise`` ``(L,)``, over
+    the loss pixels ``EDGE_MM`` inside the window's edges and the used bands, with the share the cube's
+    own noise adds to it taken out. ``x`` ``(N_PARAMS, H, W)``: the skin the spread is made at (its
+    median). A linear, one-kernel account of the cross-talk: a scene it puts far over the check's limit
+    (``FORECAST_MARGIN``) fails the check too."""
+    spread = _UniformSpread(problem, x)
+    factor = spread.lit_and_spread(1.0)
+    cube = problem.level.target.to(torch.float64)
+    inside = problem.mask & _interior(problem.mask, problem.level.mm_per_pixel)
+    used = (problem.band_weight > 0).cpu()
+    if int(inside.sum()) < MIN_PAIRS or not bool(used.any()):
+        return 0.0
+    relative = cube / factor.clamp_min(1e-12)
+    median = relative[:, problem.mask].median(dim=1).values
+    relative = torch.where(problem.mask, relative, median[:, None, None]) / median[:, None, None]
+    diff = (spread.lit_and_spread(relative) - relative * factor) * median[:, None, None]
+    sigma = noise.to(torch.float64)
+    excess = diff[:, inside].pow(2).mean(dim=1) / sigma**2 - spread.noise_gain()
+    return math.sqrt(max(float(excess[used].mean()), 0.0))
+
+
+def _interior(mask: torch.Tensor, mm_per_pixel: float) -> torch.Tensor:
+    """``(H, W)``: the pixels ``EDGE_MM`` or more inside the frame's edges."""
+    inner = int(round(EDGE_MM / mm_per_pixel))
+    interior = torch.zeros_like(mask)
+    interior[inner: mask.shape[0] - inner, inner: mask.shape[1] - inner] = True
+    return interior
 
 
 def _lag_one(values: torch.Tensor, valid: torch.Tensor) -> tuple[float, int]:
@@ -129,9 +196,7 @@ def spatial_structure(layout: MapLayout, x: torch.Tensor, mask: torch.Tensor, mm
     Per-pixel values count from ``EDGE_MM`` inside the window's edges: nearer, the light factor of the
     skin's median is the model's own approximation (off for other skin), and the maps take it up as a
     ring (docs/reconstruct.md, "From reconstruct/choice/fidelity.py")."""
-    inner = int(round(EDGE_MM / mm_per_pixel))
-    interior = torch.zeros_like(mask)
-    interior[inner: mask.shape[0] - inner, inner: mask.shape[1] - inner] = True
+    interior = _interior(mask, mm_per_pixel)
     out = {}
     for k, name in enumerate(PARAMETER_NAMES):
         if k in layout.grids:
@@ -202,6 +267,8 @@ class ForwardChoice:
     note: str = ""
     #: each map's spatial-structure test on the coarsest level's homogeneous fit (``spatial_structure``)
     structure: dict[str, dict] = field(default_factory=dict)
+    #: the cross-talk forecast from the cube before any fit (``crosstalk_forecast``), in units of the noise
+    forecast: float | None = None
 
     @property
     def constant_maps(self) -> list[str]:
@@ -218,6 +285,10 @@ class ForwardChoice:
     def reason(self) -> str:
         if self.setting != "auto":
             return f"forward: {self.setting} (fixed by the settings)"
+        if not self.checks and self.forecast is not None and self.forecast > FORECAST_MARGIN * CROSSTALK_LIMIT:
+            return (f"the cube's cross-talk, forecast from its own pixels before any fit, is {self.forecast:.2f} of the noise "
+                    f"(over {FORECAST_MARGIN * CROSSTALK_LIMIT:g}, {FORECAST_MARGIN:g}× the check's limit): the scene needs the "
+                    "heterogeneous renderer, and the homogeneous fit was not tried")
         if not self.checks:
             return f"{self.note}: the heterogeneous renderer, as the full model"
         last = self.checks[-1]
@@ -248,5 +319,5 @@ class ForwardChoice:
     def as_dict(self) -> dict:
         return {"setting": self.setting, "chosen": self.chosen, "reason": self.reason,
                 "checks": [{**asdict(c), "passed": c.passed} for c in self.checks],
-                "structure": self.structure, "constant_maps": self.constant_maps, "uniform": self.uniform,
+                "forecast": self.forecast, "structure": self.structure, "constant_maps": self.constant_maps, "uniform": self.uniform,
                 "homogeneous_wall_s": round(self.homogeneous_wall_s, 3)}

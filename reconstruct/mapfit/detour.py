@@ -10,7 +10,10 @@ from typing import Protocol
 import torch
 import torch.nn.functional as F
 
-from ..choice.fidelity import PATCH_MM, ForwardChoice, crosstalk_check, spatial_structure, uniform_light_factor, window_light_factor
+from ..choice.fidelity import (
+    CROSSTALK_LIMIT, FORECAST_MARGIN, PATCH_MM, ForwardChoice, crosstalk_check, crosstalk_forecast, spatial_structure,
+    uniform_light_factor, window_light_factor,
+)
 from .optimizers import OptimResult
 from ..levels.problem import LevelProblem
 from ..settings import FitSettings
@@ -91,13 +94,14 @@ class _HomogeneousDetour:
         self.last = len(self.levels) - 1
 
     def fit(self, problem: LevelProblem, x, log_scale) -> OptimResult:
-        """The steps: noise known (auto), the coarsest level, then the finest at once (uniform skin) or
+        """The steps: noise known and the cross-talk forecast (auto), the coarsest level, then the finest at once (uniform skin) or
         every level in turn; the answer evaluated with the renderer."""
         if self.setting == "auto":
             try:
                 self.run.noise_at(self.levels[self.last])
             except ValueError as err:  # too few pixels to tell the noise: nothing to weigh the cross-talk against
                 raise _RendererNeeded(f"the cube's noise cannot be measured ({err})") from err
+            self._forecast(problem, x)
         x, log_scale, factor, coarse = self._coarsest(problem, x, log_scale)
         if self.choice.uniform:
             return self._uniform(x, log_scale)
@@ -106,6 +110,14 @@ class _HomogeneousDetour:
         evaluation = self._evaluate(x, log_scale, hom)
         self.choice.homogeneous_wall_s = time.perf_counter() - self.wall0
         return OptimResult(x, log_scale, evaluation, result.iterations, result.converged, result.history)
+
+    def _forecast(self, problem: LevelProblem, x) -> None:
+        """The cross-talk told from the cube alone (``crosstalk_forecast``: FFTs, no fit, no render); where it
+        is ``FORECAST_MARGIN`` times the check's limit the check would fail, and the detour is not tried."""
+        forecast = crosstalk_forecast(problem, x, self.run.noise_at(self.levels[0]))
+        self.choice.forecast = round(forecast, 4)
+        if forecast > FORECAST_MARGIN * CROSSTALK_LIMIT:
+            raise _RendererNeeded
 
     def _check(self, i: int, x_at, scale_at, factor_at) -> None:
         """The cross-talk check on level ``i``; raises ``_RendererNeeded`` where it fails."""
