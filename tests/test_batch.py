@@ -46,14 +46,24 @@ def study(made_sessions, tmp_path) -> Path:
     return tmp_path / "study"
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def client():
+    """One LocalCluster of two workers for the module (a killed worker is restarted by its nanny)."""
     from distributed import Client
 
     from skinlayers.studies.batch import local_cluster
 
     with local_cluster(2) as cluster, Client(cluster) as c:
         yield c
+
+
+def _light():
+    """What the orchestration tests run in each task: calibration and a short fit (the homogeneous model,
+    no robust refit, no absorbers) — they test statuses, ledgers and tables, not the maps."""
+    from skinlayers.reconstruct import load_fit_settings
+    from skinlayers.studies.batch import BatchOptions
+
+    return BatchOptions(fit_settings=load_fit_settings(None, forward="homogeneous", robust_passes=0, absorbers="none"))
 
 
 def _corrupt(session: Path) -> Path:
@@ -69,13 +79,13 @@ def _leftovers(study: Path) -> list[Path]:
 def test_a_corrupt_session_fails_alone_and_only_it_is_retried(study, tmp_path, client, run_cli):
     import json
 
-    from skinlayers.studies.batch import BatchOptions, read_study, reconstruction_dir, run_batch
+    from skinlayers.studies.batch import read_study, reconstruction_dir, run_batch
     from skinlayers.studies.study import session_summary
 
     bad = _corrupt(study / "s2")
     sessions = read_study(study)
     out = tmp_path / "out"
-    first = run_batch(sessions, BatchOptions(), out, client=client)
+    first = run_batch(sessions, _light(), out, client=client)
     assert {n: o.status for n, o in first.outcomes.items()} == {"s1": "done", "s2": "failed", "s3": "done"}
     assert bad.name in first.outcomes["s2"].error and "\n" not in first.outcomes["s2"].error
     assert not (study / "s2_calibrated" / "calibration.json").exists()
@@ -100,12 +110,12 @@ def test_a_corrupt_session_fails_alone_and_only_it_is_retried(study, tmp_path, c
 
 
 def test_a_worker_killed_during_a_task_costs_no_session(study, tmp_path, client):
-    from skinlayers.studies.batch import BatchOptions, read_study, reconstruction_dir, run_batch
+    from skinlayers.studies.batch import read_study, reconstruction_dir, run_batch
 
     sessions = read_study(study)
     assert set(client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_")).values()) == {None}  # batch.WORKER_ENVIRON
     result: dict = {}
-    runner = threading.Thread(target=lambda: result.update(r=run_batch(sessions, BatchOptions(), tmp_path / "out", client=client)))
+    runner = threading.Thread(target=lambda: result.update(r=run_batch(sessions, _light(), tmp_path / "out", client=client)))
     runner.start()
     busy = _busy_worker(client)
     killed_task = next(iter(client.processing()[busy]))

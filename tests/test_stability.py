@@ -8,6 +8,7 @@ import csv
 import json
 import math
 import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -166,9 +167,22 @@ def test_every_failing_cell_of_a_small_matrix_is_told(small):
     assert any("about" in line for line in said)  # progress with the time left
 
 
+def _clean_row_only(out: Path, to: Path) -> None:
+    """The small matrix's table with its clean cell alone, in ``to``: a run there resumes with the clean
+    cell measured (the same session, the same fit) and measures only its faults."""
+    with (out / "stability.csv").open() as f:
+        reader = csv.DictReader(f)
+        rows = [r for r in reader if r["condition"] == "clean"]
+    with (to / "stability.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=reader.fieldnames)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
 def test_with_the_fits_checks_switched_off_a_failure_goes_silent(small, tmp_path, monkeypatch):
     out, _, _ = small
     shutil.copytree(out / "sessions", tmp_path / "sessions")  # the same session, not simulated again
+    _clean_row_only(out, tmp_path)
     from skinlayers.reconstruct.diagnosis import checks
 
     monkeypatch.setattr(checks.DataChecks, "warn", lambda self, lines: None)
@@ -180,6 +194,7 @@ def test_with_the_fits_checks_switched_off_a_failure_goes_silent(small, tmp_path
 def test_with_the_calibrations_card_check_switched_off_a_wrong_certificate_goes_silent(small, tmp_path, monkeypatch):
     out, _, _ = small
     shutil.copytree(out / "sessions", tmp_path / "sessions", ignore=shutil.ignore_patterns("*certificate*"))
+    _clean_row_only(out, tmp_path)
     from skinlayers.calibration import pipeline
 
     monkeypatch.setattr(pipeline, "card_spectrum_flags", lambda *args: [])

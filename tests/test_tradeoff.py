@@ -23,8 +23,19 @@ def _plan(inverse: list[str]) -> TradeoffPlan:
                         scale_sizes=[], scale_configs=[], scale_seed=7)
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _timed_once():
+    """Each step timed once: the tests read the table's columns and rows, not its timings' spread (the
+    command times short steps ``REPEATS`` times and keeps the fastest)."""
+    import skinlayers.analyses.tradeoff as tradeoff
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(tradeoff, "REPEATS", 1)
+        yield
+
+
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tmp_path_factory, _timed_once):
     out = tmp_path_factory.mktemp("tradeoff")
     said: list[str] = []
     result = run_tradeoff(out, plan=_plan(["homogeneous", "binned 2x2"]), say=said.append)
