@@ -35,7 +35,7 @@ from .profiles import multipole_hankel, multipole_totals
 from ..optics.radiometry import entry_transmittance
 from ..settings import ModelSettings
 from ..optics.spectra import ChromophoreSpectra, chromophore_spectra
-from .tables import ProfileTables, load_profile_tables
+from .tables import ProfileTables, load_profile_tables, table_key
 
 __all__ = ["LayerTransforms", "SkinModel", "combine_layers", "inverse_hankel"]
 
@@ -95,8 +95,21 @@ class SkinModel:
         w = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
         key = tuple(round(float(x), 6) for x in w)
         if key not in self._tables:
-            self._tables[key] = load_profile_tables(w, self.settings, self.cache_dir, progress)
+            self._tables[key] = self._from_loaded(key) or load_profile_tables(w, self.settings, self.cache_dir, progress)
         return self._tables[key]
+
+    def _from_loaded(self, key: tuple[float, ...]) -> ProfileTables | None:
+        """These wavelengths' rows of a table already loaded that holds them all, or None. Each wavelength's
+        weights are fitted on their own (``build_profile_tables``), so the rows are the table the set would
+        get built alone: the simulator's one-node renders then take its band's three-node table instead
+        of building each node's again."""
+        for rounded, table in self._tables.items():
+            at = {x: i for i, x in enumerate(rounded)}
+            if all(x in at for x in key):
+                rows = torch.tensor([at[x] for x in key], dtype=torch.long)
+                return ProfileTables(table.wavelength_nm[rows], table.sigma_a_per_mm, table.variances_mm2,
+                                     table.epidermis[rows], table.dermis[rows], table_key(self.settings, table.wavelength_nm[rows]))
+        return None
 
     def point_tables(self, wavelength_nm: torch.Tensor, device: torch.device | str | None = None) -> PointTables:
         """The homogeneous model's totals tabulated at these bands for point fits

@@ -503,3 +503,22 @@ def test_lookup_refuses_wrong_shapes_and_names(small_tables):
         t.lookup("hypodermis", "R_plus", torch.ones(2, dtype=F64))
     with pytest.raises(ValueError, match="profiles"):
         t.lookup("dermis", "T_plus", torch.ones(2, dtype=F64))
+
+
+def test_a_subset_of_loaded_wavelengths_is_their_rows_as_built_alone(tmp_path, monkeypatch):
+    """A model that holds a band's three-node table answers a one-node request with that table's row,
+    building nothing, and the row equals the table the node gets built alone (the simulator asks for
+    both: the band's nodes for the series terms, each node for its render)."""
+    from skinlayers.model.column.layered import SkinModel
+
+    monkeypatch.setenv("SKINLAYERS_CACHE", str(tmp_path / "model"))
+    settings = ModelSettings(tables=SMALL)
+    nodes = torch.tensor([545.0, 550.0, 555.0], dtype=F64)
+    model = SkinModel(settings)
+    model.tables(nodes)
+    with monkeypatch.context() as mp:
+        mp.setattr(tables_module, "build_profile_tables", _refuse_to_build)
+        row = model.tables(nodes[2:])
+    alone = load_profile_tables(nodes[2:], settings, tmp_path / "alone")
+    assert _same(row, alone) and row.key == alone.key
+    assert len(list((tmp_path / "model").iterdir())) == 1  # nothing cached for the row

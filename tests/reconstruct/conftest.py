@@ -13,6 +13,7 @@ of C_hd reaches 22% (measured; the report explains why).
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import os
 import sys
@@ -45,9 +46,37 @@ def load_synthetic():
 SMALL_FIT = {"map_cell_mm": {"C_bc": 0.0}}
 
 
+class _RenderedOnce:
+    """``synthetic_cubes`` whose ``make_cube`` renders each cube (its arguments) once per test run: xdist's
+    workers, and the files that ask for the same cube, read it from one file (written whole, under a
+    lock, by whichever asks first). Each call returns its own copy."""
+
+    def __init__(self, module, folder: Path) -> None:
+        self._module, self._folder = module, folder
+
+    def __getattr__(self, name: str):
+        return getattr(self._module, name)
+
+    def make_cube(self, *args, **kwargs):
+        import torch
+        from filelock import FileLock
+
+        key = hashlib.sha256(repr((args, sorted(kwargs.items()))).encode()).hexdigest()[:20]
+        path = self._folder / f"cube-{key}.pt"
+        with FileLock(f"{path}.lock"):
+            if not path.exists():
+                made = self._module.make_cube(*args, **kwargs)
+                torch.save(made, path.with_suffix(".tmp"))
+                os.replace(path.with_suffix(".tmp"), path)
+        return torch.load(path, weights_only=False)
+
+
 @pytest.fixture(scope="session")
-def synthetic():
-    return load_synthetic()
+def synthetic(tmp_path_factory, worker_id):
+    base = tmp_path_factory.getbasetemp()
+    folder = (base.parent if worker_id != "master" else base) / "synthetic-cubes"
+    folder.mkdir(exist_ok=True)
+    return _RenderedOnce(load_synthetic(), folder)
 
 
 @pytest.fixture(scope="session")
