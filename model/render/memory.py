@@ -11,19 +11,26 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import sys
 
-__all__ = ["trim_heap_on_free"]
+__all__ = ["M_MMAP_THRESHOLD", "M_TRIM_THRESHOLD", "glibc", "trim_heap_on_free"]
 
-_M_TRIM_THRESHOLD = -1
+#: glibc's ``mallopt`` parameters (malloc.h).
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+
+
+def glibc():
+    """The C library when it is glibc on Linux (it has ``mallopt``), else None."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return None
+    return libc if hasattr(libc, "mallopt") else None
 
 
 def trim_heap_on_free() -> bool:
     """Ask glibc to return freed memory to the system at once; False where that is not glibc."""
-    name = ctypes.util.find_library("c")
-    if not name:
-        return False
-    try:
-        libc = ctypes.CDLL(name)
-        return bool(libc.mallopt(_M_TRIM_THRESHOLD, 0))
-    except (OSError, AttributeError):
-        return False
+    libc = glibc()
+    return libc is not None and bool(libc.mallopt(M_TRIM_THRESHOLD, 0))

@@ -16,15 +16,12 @@ fixed them; elsewhere (a plain process, another C library) it changes nothing.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import os
-import sys
+
+from ..model.render.memory import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, glibc
 
 __all__ = ["FIXED_BY_ENVIRONMENT", "MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES", "use_task_allocator"]
 
-#: glibc's ``mallopt`` parameters (malloc.h).
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 #: The top of glibc's dynamic mmap threshold on 64-bit (``DEFAULT_MMAP_THRESHOLD_MAX``: 4 MiB × sizeof(long)),
 #: and the trim threshold the dynamic scheme pairs with it (twice the mmap threshold).
 MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024
@@ -35,17 +32,6 @@ FIXED_BY_ENVIRONMENT = ("MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_", "MAL
 _FIXING_TUNABLES = ("trim_threshold", "mmap_threshold", "top_pad", "mmap_max")
 
 
-def _glibc():
-    """The C library when it is glibc (it has ``mallopt``), else None."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-    except OSError:
-        return None
-    return libc if hasattr(libc, "mallopt") else None
-
-
 def use_task_allocator(environ: dict[str, str] | None = None) -> bool:
     """Where the environment fixed glibc's malloc thresholds (``FIXED_BY_ENVIRONMENT``, or their ``GLIBC_TUNABLES``), set them to
     ``MMAP_THRESHOLD_BYTES`` and ``TRIM_THRESHOLD_BYTES`` for this process. Returns whether it did."""
@@ -54,8 +40,8 @@ def use_task_allocator(environ: dict[str, str] | None = None) -> bool:
     if not any(name in environ for name in FIXED_BY_ENVIRONMENT) and not any(
             f"glibc.malloc.{t}" in tunables for t in _FIXING_TUNABLES):
         return False
-    libc = _glibc()
+    libc = glibc()
     if libc is None:
         return False
-    return bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
-        libc.mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
+    return bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
+        libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
