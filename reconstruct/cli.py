@@ -265,7 +265,8 @@ def default_reconstruction_dir(source: Path, cube_path: Path) -> Path:
 
 
 def reconstruct(
-    source: Path = typer.Argument(..., help="A session folder (uses SESSION_calibrated/cube.exr beside it), a calibrated folder or a cube.exr."),
+    source: Path = typer.Argument(..., help="A session folder (uses SESSION_calibrated/cube.exr beside it), a calibrated folder, a cube.exr, "
+                                            "or a reflectance cube from another camera: ENVI .hdr, multi-page .tif, .npz or .h5 (docs/formats.md)."),
     out: Optional[Path] = typer.Option(
         None, "-o", "--out", help="Output folder (default: SESSION_reconstruction beside a session, else reconstruction/ beside the cube)."
     ),
@@ -280,6 +281,7 @@ def reconstruct(
              "fit (the renderer, every map per pixel, a free scale).",
     ),
     force: bool = typer.Option(False, "--force", help="Overwrite the outputs of an earlier fit in the output folder."),
+    mm_per_pixel: Optional[float] = typer.Option(None, "--mm-per-pixel", help="A cube from another camera: the pixel's side on the skin (mm), where its file does not say it."),
     threads: Optional[str] = typer.Option(None, "--threads", help=THREADS_HELP),
 ) -> None:
     """Fit chromophore maps to a reflectance cube by inverse rendering (DWRR08 §6.3).
@@ -287,7 +289,7 @@ def reconstruct(
     Writes maps.exr (C_m, beta_m, C_he, C_bc, C_hd, residuals, flags, sigma_*), fit.json, report.png and
     fit_settings.yaml. Example: skinlayers reconstruct my-session  (after skinlayers calibrate my-session)
     """
-    from ..formats.cube import read_cube  # noqa: PLC0415
+    from ..formats.cube_files import read_cube_file  # noqa: PLC0415
     from .results.outputs import OUTPUT_NAMES, reconstruct_cube  # noqa: PLC0415
     from .settings import load_fit_settings  # noqa: PLC0415
 
@@ -300,9 +302,10 @@ def reconstruct(
     out_dir = out or default_reconstruction_dir(source, cube_path)
     check_outputs(out_dir, OUTPUT_NAMES, force=force, what="reconstruction")  # refused before any bar or work
     typer.echo(f"threads: {command_threads(threads).describe()}")
-    bands = len(read_cube(cube_path).header.wavelengths_nm)
+    bands = len(read_cube_file(cube_path, mm_per_pixel).header.wavelengths_nm)  # a file that cannot be fitted is refused here
     with fit_progress(settings, bands) as on_event:
-        fit, paths = reconstruct_cube(cube_path, out_dir, settings, device=device, force=force, progress=on_event)
+        fit, paths = reconstruct_cube(cube_path, out_dir, settings, device=device, force=force, progress=on_event,
+                                      mm_per_pixel=mm_per_pixel)
     print_fit_summary(fit, settings)
     for kind, path in paths.items():
         typer.echo(f"{kind}: {path}")

@@ -21,7 +21,7 @@ from typing import Callable
 import torch
 import yaml
 
-from ...formats.cube import read_cube
+from ...formats.cube_files import read_cube_file
 from ...formats.files import atomic_write
 from ...formats.outputs import claim_outputs
 from ...formats.version import software_version
@@ -119,13 +119,14 @@ def _parameter_stats(params: torch.Tensor, sigma: torch.Tensor, at_bound_fractio
 
 def reconstruct_cube(
     cube_path: str | Path, out_dir: str | Path, settings: FitSettings, *, device: str = "auto", force: bool = False,
-    progress: Callable | None = None,
+    progress: Callable | None = None, mm_per_pixel: float | None = None,
 ) -> tuple[MapFit, dict[str, Path]]:
-    """Fit the cube at ``cube_path`` and write the outputs into ``out_dir``; the fit and the files' final
+    """Fit the cube at ``cube_path`` (``cube.exr`` or any format of ``formats.cube_files``; ``mm_per_pixel``
+    where that file does not say it) and write the outputs into ``out_dir``; the fit and the files' final
     paths by kind. ``progress``: ``fit_cube``'s callback."""
     out = Path(out_dir)
     with claim_outputs(out, OUTPUT_NAMES, force=force, marker=MARKER, what="reconstruction") as staging:
-        cube = read_cube(cube_path)
+        cube = read_cube_file(cube_path, mm_per_pixel)
         fit = fit_cube(cube, settings, device=device, progress=progress)
         written = write_outputs(fit, settings, staging.staging, source=str(cube_path))
     return fit, {kind: out / path.name for kind, path in written.items()}

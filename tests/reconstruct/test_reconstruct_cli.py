@@ -151,3 +151,18 @@ def test_shipped_yaml_is_the_embedded_default():
     from skinlayers.configs import config_path
 
     assert load_fit_settings(config_path("fit.yaml")) == FitSettings()
+
+
+def test_reconstruct_fits_an_envi_cube_to_the_maps_of_its_exr(tmp_path, small_cube, small_fit, run_cli):
+    """The same cube as ENVI and as cube.exr: ``skinlayers reconstruct`` gives the same maps to the bit."""
+    from skinlayers.formats.cube_files import write_cube_file
+
+    envi = write_cube_file(tmp_path / "arm.hdr", small_cube.cube)
+    config = tmp_path / "fit.yaml"
+    config.write_text("map_cell_mm: {C_bc: 0}\n")  # small_fit's settings
+    code, out, err = run_cli("reconstruct", str(envi), "--config", str(config), "--device", "cpu", "-o", str(tmp_path / "rec"))
+    assert code == 0, out + err
+    maps = read_maps(tmp_path / "rec" / "maps.exr")
+    for n in PARAMETER_NAMES:
+        assert torch.equal(getattr(maps, n), getattr(small_fit.maps, n)), n
+    assert json.loads((tmp_path / "rec" / "fit.json").read_text())["scale"] == small_fit.scale
