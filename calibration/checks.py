@@ -50,6 +50,10 @@ from ..formats.rig import RigConfig
 from .errors import BandMissingError, CalibrationError, ChecksumMismatchError, FrameMissingError
 from .settings import CalibrationSettings
 
+#: A share of the window below this (0.01%: a few pixels of a camera's window) is masked and kept in
+#: the band's record, not raised as a flag: flags printed at 0.00% on every clean session teach a user
+#: to ignore flags.
+MIN_FLAGGED_SHARE = 1e-4
 _BRIGHTEST_SHARE = 0.2  # of the skin frame: the window, wherever it lies
 
 __all__ = [
@@ -174,11 +178,12 @@ def select_frames(manifest: Manifest, rig: RigConfig, need_dark: bool) -> tuple[
 
 
 def exposure_flags(band_nm: float, saturated: float, underexposed: float, settings: CalibrationSettings) -> list[Flag]:
-    """Flags for a band whose window has saturated or under-exposed pixels (fractions of the window)."""
+    """Flags for a band whose window has saturated or under-exposed pixels (fractions of the window), each
+    from ``MIN_FLAGGED_SHARE`` of the window on."""
     flags = []
-    if saturated > 0:
+    if saturated >= MIN_FLAGGED_SHARE:
         flags.append(Flag("saturated", band_nm, f"{band_nm:g} nm: {saturated:.2%} of the window saturated (masked)", saturated))
-    if underexposed > 0:
+    if underexposed >= MIN_FLAGGED_SHARE:
         flags.append(
             Flag("underexposed", band_nm, f"{band_nm:g} nm: {underexposed:.2%} of the window under-exposed (masked)", underexposed)
         )

@@ -73,9 +73,27 @@ batch_cli.register(app)
 band_design.register(app)
 
 
+def command():
+    """The ``skinlayers`` command as click runs it, its on/off and counted options (``--help`` too) shown
+    without a type placeholder in ``--help``: ``--force`` is a switch, and a ``<bool>`` beside it reads as
+    if it took a value."""
+    group = typer.main.get_command(app)
+    for sub in _commands(group):
+        help_option = sub.get_help_option(sub.context_class(sub))  # made once and kept by the command
+        for param in [*sub.params, *([help_option] if help_option is not None else [])]:
+            if getattr(param, "is_flag", False) or getattr(param, "count", False):
+                param.metavar = ""
+    return group
+
+
+def _commands(cmd) -> list:
+    """``cmd`` and every command under it."""
+    return [cmd, *(c for sub in getattr(cmd, "commands", {}).values() for c in _commands(sub))]
+
+
 def main() -> None:
     try:
-        app()
+        command()(prog_name="skinlayers")
     except (SkinlayersError, OSError) as exc:
         if os.environ.get("SKINLAYERS_DEBUG"):
             raise

@@ -210,3 +210,14 @@ def test_a_bug_keeps_its_traceback_and_a_user_error_is_one_line(monkeypatch, run
     monkeypatch.setattr(model_cli, "_spectrum_report", refused)
     code, _, err = run_cli("spectrum", "--json")
     assert code == 1 and err.strip() == "error: x.yaml: optics.n_dermis: the value is not usable"
+
+
+@pytest.mark.parametrize("args", [["--help"], ["calibrate", "--help"], ["reconstruct", "--help"], ["render", "--help"]])
+def test_help_shows_no_type_placeholder_beside_a_switch(run_cli, monkeypatch, args):
+    """A switch (``--force``, ``--no-align``, ``--help``) or a count (``-v``) takes no value: ``--help``
+    shows none beside it, and still shows what an option with a value takes."""
+    monkeypatch.setenv("COLUMNS", "160")
+    code, out, _ = run_cli(*args)
+    assert code == 0
+    assert "<bool>" not in out and not any("<int>" in line for line in out.splitlines() if "--verbose" in line), out
+    assert "<path>" in out or args == ["--help"], out

@@ -164,3 +164,13 @@ def test_reference_without_the_spectralon(session_copy, tmp_path, synth):
     _replace_frame(session_copy.path, "reference_670.dng", data, synth)
     with pytest.raises(CalibrationError, match=r"reference_670.dng \(reference frame, 670 nm\): the reference is darker under the window than the skin"):
         calibrate_session(session_copy.path, tmp_path / "out")
+
+
+def test_a_few_pixels_of_the_window_are_masked_without_a_flag():
+    """A share that prints as 0.00% is in the band's record, not a flag (a clean session prints none)."""
+    from skinlayers.calibration.checks import MIN_FLAGGED_SHARE, exposure_flags
+    from skinlayers.calibration.settings import CalibrationSettings
+
+    settings = CalibrationSettings()
+    assert exposure_flags(460.0, 0.0, 0.3 * MIN_FLAGGED_SHARE, settings) == []
+    assert [f.code for f in exposure_flags(460.0, 2 * MIN_FLAGGED_SHARE, 2 * MIN_FLAGGED_SHARE, settings)] == ["saturated", "underexposed"]
