@@ -155,7 +155,9 @@ def write_outputs(fit: MapFit, settings: FitSettings, out_dir: str | Path, sourc
     report_path = out / "report.png"
     from .report import plot_report  # noqa: PLC0415 (matplotlib only when a report is written)
 
-    plot_report(fit, measured if measured is not None else fit.image - fit.residual, report_path)
+    summary = fit_summary(fit, settings, source)
+    undetermined = {n: "at its bound" for n, entry in summary["parameters"].items() if not entry.get("determined", True)}
+    plot_report(fit, measured if measured is not None else fit.image - fit.residual, report_path, undetermined)
     # fit.json last and atomically: its presence says the outputs are complete (the CLI keys on it)
-    json_path = atomic_write(out / "fit.json", json.dumps(fit_summary(fit, settings, source), indent=1, allow_nan=True).encode())
+    json_path = atomic_write(out / "fit.json", json.dumps(summary, indent=1, allow_nan=True).encode())
     return {"maps": maps_path, "fit": json_path, "settings": settings_path, "report": report_path}

@@ -2,7 +2,11 @@
 with residual and flags (Fig. 12), with matplotlib's non-interactive backend.
 
 Rows: measured, fitted (same colour range per band), fitted − measured (symmetric range); then the
-five parameter maps, the per-pixel residual RMS and the flags. Masked pixels are drawn grey.
+five parameter maps, the per-pixel residual RMS and the flags. Masked pixels are drawn grey. A map of one
+value for the patch, or one the data leave undetermined, gets its value or the reason in its title and
+no colour bar (a bar would claim a range); the flags panel draws each pixel's first flag in its own
+colour, with a legend of the flags present and their shares. Colour bars carry plain tick labels (no
+offset text above the bar to run into the title).
 """
 
 from __future__ import annotations
@@ -16,18 +20,42 @@ from ...model import PARAMETER_NAMES
 from ..diagnosis.checks import FLAG_BITS
 from ..mapfit.fit import MapFit
 
-__all__ = ["plot_report"]
+__all__ = ["draw_report", "plot_report"]
+
+#: The flags panel's colours, one per flag bit (tab10), and the order a pixel's first flag is drawn in.
+_FLAG_COLOURS = "tab10"
+#: The PNG's resolution (dots per inch).
+REPORT_DPI = 110
 
 _LABELS = {"C_m": "melanin C_m", "beta_m": "eumelanin share β_m", "C_he": "epidermal blood C_he",
            "C_bc": "carotene C_bc", "C_hd": "dermal blood C_hd"}
 
 
-def plot_report(fit: MapFit, measured: torch.Tensor, path: str | Path) -> Path:
-    """Draw the report of ``fit`` against ``measured`` ``(L, H, W)`` into ``path``."""
+def plot_report(fit: MapFit, measured: torch.Tensor, path: str | Path, undetermined: dict[str, str] | None = None) -> Path:
+    """Draw the report of ``fit`` against ``measured`` ``(L, H, W)`` into ``path``; ``undetermined``: the
+    maps the data leave undetermined, each with the few words why (drawn without a colour bar)."""
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    fig = draw_report(fit, measured, undetermined)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        fig.savefig(path, dpi=REPORT_DPI)
+    finally:
+        plt.close(fig)
+    return path
+
+
+def draw_report(fit: MapFit, measured: torch.Tensor, undetermined: dict[str, str] | None = None):
+    """The report's figure (matplotlib, Agg); the caller closes it."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
+    from matplotlib.ticker import FuncFormatter  # noqa: PLC0415
+
+    undetermined = undetermined or {}
+    plain = FuncFormatter(lambda v, _: f"{v:.3g}")
 
     masked = ((fit.flags >> FLAG_BITS["masked"]) & 1).bool().cpu().numpy()
     wl = fit.wavelength_nm.tolist()
@@ -37,12 +65,14 @@ def plot_report(fit: MapFit, measured: torch.Tensor, path: str | Path) -> Path:
     for ax in axes.ravel():
         ax.set_axis_off()
 
-    def show(ax, img, title, cmap="viridis", vmin=None, vmax=None):
+    def show(ax, img, title, cmap="viridis", vmin=None, vmax=None, bar=True):
         a = np.ma.masked_array(img, masked)
         cm = plt.get_cmap(cmap).with_extremes(bad="0.6")
         im = ax.imshow(a, cmap=cm, vmin=vmin, vmax=vmax, interpolation="nearest")
         ax.set_title(title, fontsize=7)
-        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02).ax.tick_params(labelsize=5)
+        if bar:
+            cbar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, format=plain)
+            cbar.ax.tick_params(labelsize=5)
 
     meas = measured.detach().cpu().numpy()
     fitted = fit.image.detach().cpu().numpy()
@@ -59,25 +89,42 @@ def plot_report(fit: MapFit, measured: torch.Tensor, path: str | Path) -> Path:
         values = getattr(fit.maps, n)[0].detach().cpu().numpy()
         vis = values[~masked] if (~masked).any() else values.ravel()
         lo, hi = float(vis.min()), float(vis.max())
-        if hi - lo <= 1e-3 * max(abs(hi), 1e-12):  # one value for the patch (a map on one node): no round-off speckle
+        if n in undetermined:
+            show(axes[3, i], values, f"{_LABELS[n]}\nundetermined: {undetermined[n]}", "magma", bar=False)
+        elif hi - lo <= 1e-3 * max(abs(hi), 1e-12):  # one value for the patch (a map on one node): no round-off speckle
             lo, hi = lo * 0.9, hi * 1.1 + 1e-12
-            show(axes[3, i], values, f"{_LABELS[n]} = {np.median(vis):.3g} (patch)", "magma", lo, hi)
+            show(axes[3, i], values, f"{_LABELS[n]}\n= {np.median(vis):.3g} (patch)", "magma", lo, hi, bar=False)
         else:
             show(axes[3, i], values, _LABELS[n], "magma")
     show(axes[3, 5], fit.residual_rms.detach().cpu().numpy(), "residual RMS", "inferno")
-    axes[3, 6].set_axis_on()
-    axes[3, 6].imshow(fit.flags.cpu().numpy(), cmap="tab10", interpolation="nearest", vmin=0, vmax=2 ** len(FLAG_BITS))
-    axes[3, 6].set_title("flags (bit field)", fontsize=7)
-    axes[3, 6].set_xticks([])
-    axes[3, 6].set_yticks([])
+    _flags_panel(axes[3, 6], fit.flags.cpu().numpy(), plt)
     title = (f"scale {fit.scale:.3f} · residual RMS {float(fit.residual_rms[~torch.from_numpy(masked)].pow(2).mean().sqrt()):.4f} · "
              f"{fit.cpu_s:.1f} s CPU")
     if fit.forward_choice:  # the forward model and why (reconstruct/choice/fidelity.py)
         title += f"\nforward model: {fit.forward_choice['chosen']} — {fit.forward_choice['reason']}"
     fig.suptitle(title, fontsize=8)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return fig
+
+
+def _flags_panel(ax, flags: np.ndarray, plt) -> None:
+    """Each pixel in the colour of its first flag (white: none), a legend of the flags present below."""
+    from matplotlib.colors import ListedColormap  # noqa: PLC0415
+    from matplotlib.patches import Patch  # noqa: PLC0415
+
+    colours = plt.get_cmap(_FLAG_COLOURS).colors
+    first = np.full(flags.shape, -1)
+    for name, bit in sorted(FLAG_BITS.items(), key=lambda kv: -kv[1]):  # lowest bit drawn last: it wins
+        first[(flags >> bit) & 1 == 1] = bit
+    cmap = ListedColormap(["white", *colours[: len(FLAG_BITS)]])
+    ax.set_axis_on()
+    ax.imshow(first + 1, cmap=cmap, vmin=0, vmax=len(FLAG_BITS), interpolation="nearest")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title("flags (first set)", fontsize=7)
+    present = [(name, bit, float(((flags >> bit) & 1).mean())) for name, bit in FLAG_BITS.items() if ((flags >> bit) & 1).any()]
+    handles = [Patch(color=colours[bit], label=f"{name} {share:.1%}") for name, bit, share in present]
+    if not handles:
+        handles = [Patch(facecolor="white", edgecolor="0.5", label="no flag")]
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.04), fontsize=5, frameon=False, ncol=1,
+              handlelength=1.0, borderaxespad=0.0)

@@ -166,3 +166,50 @@ def test_reconstruct_fits_an_envi_cube_to_the_maps_of_its_exr(tmp_path, small_cu
     for n in PARAMETER_NAMES:
         assert torch.equal(getattr(maps, n), getattr(small_fit.maps, n)), n
     assert json.loads((tmp_path / "rec" / "fit.json").read_text())["scale"] == small_fit.scale
+
+
+def _drawn_texts(fig) -> list:
+    """The texts the figure draws: its title, each shown axes' title, its tick labels, axis labels and
+    offset texts where its axis is on (a colour bar's too), and the legends' entries."""
+    texts = [fig._suptitle] if fig._suptitle is not None else []
+    for ax in fig.axes:
+        if not ax.get_visible():
+            continue
+        texts += [ax.title, ax._left_title, ax._right_title]
+        if ax.axison:
+            for axis in (ax.xaxis, ax.yaxis):
+                texts += [t for t in axis.get_ticklabels() if t.get_visible()] + [axis.label, axis.offsetText]
+        if ax.get_legend() is not None:
+            texts += list(ax.get_legend().get_texts())
+    return [t for t in texts if t.get_visible() and t.get_text().strip()]
+
+
+def _overlaps(fig) -> list[tuple[str, str]]:
+    """Pairs of drawn texts whose boxes overlap (by more than half a pixel each way)."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    boxes = [(t.get_text(), t.get_window_extent(renderer)) for t in _drawn_texts(fig)]
+    pairs = []
+    for i, (a, ba) in enumerate(boxes):
+        for b, bb in boxes[i + 1:]:
+            if min(ba.x1, bb.x1) - max(ba.x0, bb.x0) > 0.5 and min(ba.y1, bb.y1) - max(ba.y0, bb.y0) > 0.5:
+                pairs.append((a[:40], b[:40]))
+    return pairs
+
+
+def test_the_report_has_no_overlapping_text_a_flag_legend_and_no_bar_for_a_patch_value(small_fit, small_cube):
+    import matplotlib.pyplot as plt
+
+    from skinlayers.reconstruct.results.report import draw_report
+
+    fig = draw_report(small_fit, small_cube.cube.reflectance, {"C_bc": "at its bound"})
+    try:
+        assert _overlaps(fig) == []
+        flags_ax = [ax for ax in fig.axes if ax.get_title().startswith("flags")][0]
+        legend = flags_ax.get_legend()
+        assert legend is not None and all("%" in t.get_text() or t.get_text() == "no flag" for t in legend.get_texts())
+        carotene = [ax for ax in fig.axes if ax.get_title().startswith("carotene")][0]
+        assert "undetermined" in carotene.get_title()
+        assert not any(im.colorbar is not None for im in carotene.images)  # no colour bar claims a range
+    finally:
+        plt.close(fig)
