@@ -70,9 +70,12 @@ def format_bytes(n: float) -> str:
 
 
 def require_memory(need_bytes: float, what: str, advice: str, device=None) -> None:
-    """``ResourceError`` when ``need_bytes`` exceeds the usable share of the memory available now."""
-    available = available_memory_bytes(device)
-    if available is not None and need_bytes > USABLE_SHARE * available:
+    """``ResourceError`` when ``need_bytes`` exceeds the memory budget (``memory_budget_bytes``): the one
+    budget a command's plan and every check inside it compare against."""
+    budget = memory_budget_bytes(device)
+    if need_bytes > budget:
+        source = ("SKINLAYERS_MEMORY_BUDGET_MB" if os.environ.get("SKINLAYERS_MEMORY_BUDGET_MB")
+                  else f"{USABLE_SHARE:.0%} of the {format_bytes(budget / USABLE_SHARE)} available here")
         raise ResourceError(
-            f"{what} needs about {format_bytes(need_bytes)} of memory; {format_bytes(available)} are available here. {advice}"
+            f"{what} needs about {format_bytes(need_bytes)} of memory; the budget is {format_bytes(budget)} ({source}). {advice}"
         )

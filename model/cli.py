@@ -393,16 +393,19 @@ def _render_diffusion(maps, light, wl: torch.Tensor, settings: ModelSettings, bl
     from .render.renderer import SkinRenderer  # noqa: PLC0415
 
     renderer = SkinRenderer(settings)
-    images, terms = [], []
     step = bands_per_pass or wl.numel()
     groups = [slice(k, k + step) for k in range(0, wl.numel(), step)]
     # every group takes the terms all bands at once would: grouping changes nothing in the image
     series = renderer.series_terms_for(maps, wl) if len(groups) > 1 else None
-    for group in groups:
+    image, terms = None, []
+    for group in groups:  # each group's bands go straight into the one output image: no list to concatenate
         result = renderer.render(maps, light, wl[group], blur=blur, series_terms=series, **angles)
-        images.append(result.image[0].detach().cpu().double())
+        if image is None:
+            image = torch.empty(wl.numel(), *result.image.shape[-2:], dtype=torch.float32)
+        image[group] = result.image[0].detach().cpu()
         terms += result.terms
-    return torch.cat(images), {}, f"{max(terms)} inter-scattering terms"
+        del result
+    return image, {}, f"{max(terms)} inter-scattering terms"
 
 
 def _render_transport(maps, light, wl: torch.Tensor, settings: ModelSettings, photons, seed: int, angles: dict):
@@ -464,7 +467,7 @@ def _srgb_rows(converter: ColourConverter, image: torch.Tensor, rows: int = 256)
     would take its size many times over in the colour conversion's intermediates)."""
     out = torch.empty(image.shape[1], image.shape[2], 3, dtype=torch.float32)
     for y in range(0, image.shape[1], rows):
-        out[y:y + rows] = converter.srgb(image[:, y:y + rows].permute(1, 2, 0)).float()
+        out[y:y + rows] = converter.srgb(image[:, y:y + rows].permute(1, 2, 0).double()).float()
     return out
 
 

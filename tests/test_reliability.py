@@ -236,8 +236,11 @@ def test_render_in_band_groups_gives_the_same_image(maps_file, tmp_path, run_cli
     assert code == 0
     import skinlayers.formats.resources as resources
 
+    from skinlayers.model.render.tiles import _COMMAND_BYTES
+
     one_band = render_bytes(1, 1, 16, 16, math.ceil(5.0 / 0.1), weight_cache_mb=1536)
-    monkeypatch.setattr(resources, "available_memory_bytes", lambda device=None: int(1.5 * one_band / resources.USABLE_SHARE))
+    budget = _COMMAND_BYTES + 1.5 * one_band  # one band's render beside what the command always holds, not two
+    monkeypatch.setattr(resources, "available_memory_bytes", lambda device=None: int(budget / resources.USABLE_SHARE))
     calls = []
     original = SkinRenderer.render
     monkeypatch.setattr(SkinRenderer, "render", lambda self, maps, light, wl, **kw: calls.append(len(wl)) or original(self, maps, light, wl, **kw))

@@ -45,10 +45,19 @@ from ..column.tables import EPIDERMIS_PROFILES
 __all__ = ["RenderResult", "SkinRenderer", "render_bytes"]
 
 #: Peak memory of a forward render per pixel of the padded grid and band, in float32: the blur stacks
-#: and per-pixel lookups, and on top the per-pixel Gaussian weights kept across terms (up to
-#: ``weight_cache_mb``); a backward pass needs a multiple of the forward's (``_BACKWARD_FACTOR``; the
-#: measurements: docs/renderer.md, "Speed and memory").
-_FORWARD_BYTES, _CACHE_BYTES, _BACKWARD_FACTOR = 260.0, 230.0, 2.0
+#: and per-pixel lookups (``_FORWARD_BYTES``); on top, the dense Gaussian weights of each profile kept
+#: across terms (``_CACHE_BYTES_PER_PROFILE`` each, ``_CACHED_PROFILES`` of them, whole profiles only, as
+#: many as ``weight_cache_mb`` holds: ``SkinRenderer._cached_lookups``); a backward pass needs a multiple
+#: of the forward's (``_BACKWARD_FACTOR``). The forward's bytes depend on how large one pass's images
+#: are: glibc serves a block of ``_MAPPED_FROM_BYTES`` or more (the ceiling of its dynamic mmap
+#: threshold) from fresh pages it returns on free, smaller ones from a heap that freed blocks of other
+#: sizes leave full of holes. Measured against the render command's peak across sizes, band groups and
+#: tiles: tests/bench/test_bench_render_memory.py, docs/renderer.md "Speed and memory".
+_FORWARD_BYTES = {"heap": 130.0, "mapped": 80.0}
+_MAPPED_FROM_BYTES = 32 * 2**20
+_CACHE_BYTES_PER_PROFILE, _CACHED_PROFILES, _BACKWARD_FACTOR = 70.0, 3, 2.0
+#: Pixels per pass of ``series_terms_for`` (its float64 intermediates: about 100 MB at 8 bands).
+SERIES_TERMS_CHUNK_PX = 1 << 16
 
 
 def render_bytes(batch: int, bands: int, height: int, width: int, border_px: int, *, itemsize: int = 4,
@@ -56,7 +65,10 @@ def render_bytes(batch: int, bands: int, height: int, width: int, border_px: int
     """Estimated peak memory (bytes) of rendering ``batch`` × ``bands`` images of ``height`` × ``width``
     pixels with ``border_px`` of occluded skin on every side."""
     cells = batch * bands * (height + 2 * border_px) * (width + 2 * border_px) * itemsize / 4.0
-    need = _FORWARD_BYTES * cells + min(_CACHE_BYTES * cells, weight_cache_mb * 2**20)
+    forward = _FORWARD_BYTES["mapped" if 4.0 * cells >= _MAPPED_FROM_BYTES else "heap"]
+    profile = _CACHE_BYTES_PER_PROFILE * cells
+    cached = min(_CACHED_PROFILES, math.floor(weight_cache_mb * 2**20 / profile)) if profile > 0 else 0
+    need = forward * cells + cached * profile
     return need * (_BACKWARD_FACTOR if backward else 1.0)
 
 
@@ -263,18 +275,24 @@ class SkinRenderer:
 
     def series_terms_for(self, maps: SkinMaps, wavelength_nm: torch.Tensor) -> int:
         """The inter-scattering terms ``render`` takes for these maps and bands (worst pixel of all):
-        pass it as ``series_terms`` to render bands in groups exactly as at once."""
+        pass it as ``series_terms`` to render bands in groups exactly as at once. Pixels are taken
+        ``SERIES_TERMS_CHUNK_PX`` at a time: all of a large frame at once would take the column totals'
+        float64 intermediates of every pixel and band together, more than the render of a band group."""
         wl = torch.as_tensor(wavelength_nm, dtype=torch.float64).reshape(-1)
+        worst = 1e-12
         with torch.no_grad():
             params = maps.params()
-            flat = type(params)(*(v.detach().reshape(-1).double() for v in params.values()))
+            flat = [v.detach().reshape(-1) for v in params.values()]
             extra = None
             if maps.absorbance is not None:
-                extra = _resample_bands(maps.absorbance.double(), maps.absorbance_wavelength_nm, wl)
+                extra = _resample_bands(maps.absorbance.detach(), maps.absorbance_wavelength_nm, wl)
                 extra = extra.permute(0, 2, 3, 1).reshape(-1, wl.numel())
-            t = self.model.layer_transforms(flat, wl, None, "tables", extra)
-            ratio = float((t.attenuation**2 * t.R1_minus * t.R2_plus).max().clamp(1e-12, 0.999))
-        return self._terms_for(ratio)
+            for start in range(0, flat[0].numel(), SERIES_TERMS_CHUNK_PX):
+                part = slice(start, start + SERIES_TERMS_CHUNK_PX)
+                chunk = type(params)(*(v[part].double() for v in flat))
+                t = self.model.layer_transforms(chunk, wl, None, "tables", None if extra is None else extra[part].double())
+                worst = max(worst, float((t.attenuation**2 * t.R1_minus * t.R2_plus).max()))
+        return self._terms_for(min(worst, 0.999))
 
     # -- pieces ----------------------------------------------------------------------------------
     @property

@@ -42,6 +42,9 @@ HALO_BORDERS = 1.0
 _OUTPUT_BYTES_PER_CELL = 8
 #: Bytes per pixel of the maps held whole (five parameters and the surface term, float32, and one copy).
 _MAPS_BYTES_PER_PX = 48
+#: What a render command adds whatever its size: the model's tables, the inter-scattering terms' pass
+#: over the pixels (``SkinRenderer.series_terms_for``), the allocator's slack (measured: docs/renderer.md).
+_COMMAND_BYTES = 100 * 2**20
 
 
 class TooLargeError(ResourceError):
@@ -99,7 +102,7 @@ def plan_render(maps_shape: tuple[int, int, int], mm_per_pixel: float, bands: in
     rs = renderer.settings.render
     border = light.border_px(mm_per_pixel, rs.border_mm)
     halo = int(math.ceil(HALO_BORDERS * rs.border_mm / mm_per_pixel))
-    fixed = b * h * w * (_MAPS_BYTES_PER_PX + _OUTPUT_BYTES_PER_CELL * bands)
+    fixed = _COMMAND_BYTES + b * h * w * (_MAPS_BYTES_PER_PX + _OUTPUT_BYTES_PER_CELL * bands)
     whole = fixed + render_bytes(b, bands, h, w, border, itemsize=itemsize, weight_cache_mb=rs.weight_cache_mb)
     for group in range(bands, 0, -1) if tile_px is None else ():  # whole, in the fewest band passes that fit
         need = fixed + render_bytes(b, group, h, w, border, itemsize=itemsize, weight_cache_mb=rs.weight_cache_mb)
@@ -110,8 +113,9 @@ def plan_render(maps_shape: tuple[int, int, int], mm_per_pixel: float, bands: in
             f"rendering {h}×{w} px at {bands} band(s) needs about {format_bytes(whole)}; the budget is "
             f"{format_bytes(budget_bytes)} ({_BUDGET_SOURCE}), and only uniform light renders in tiles. Render fewer bands "
             f"or a smaller grid, or use --light uniform.")
-    sizes = {g: tile_px if tile_px and _fits(b, g, tile_px, halo, fixed, budget_bytes, rs.weight_cache_mb, itemsize)
-             else (None if tile_px else _largest_tile(b, g, halo, fixed, budget_bytes, rs.weight_cache_mb, itemsize, max(h, w)))
+    tile_bytes = _TileBytes(b, h, w, halo, rs.weight_cache_mb, itemsize)
+    sizes = {g: tile_px if tile_px and fixed + tile_bytes(g, tile_px) <= budget_bytes
+             else (None if tile_px else _largest_tile(g, fixed, budget_bytes, tile_bytes))
              for g in range(bands, 0, -1)}
     best = max((t for t in sizes.values() if t is not None), default=None)
     group = next((g for g, t in sizes.items() if t is not None and t >= NEARLY_LARGEST * best), None) if best else None
@@ -124,22 +128,37 @@ def plan_render(maps_shape: tuple[int, int, int], mm_per_pixel: float, bands: in
             f"rendering {h}×{w} px at {bands} band(s) needs about {format_bytes(whole)} whole and more than "
             f"{format_bytes(budget_bytes)} ({_BUDGET_SOURCE}) even in tiles of {MIN_TILE_PX} px (the maps and the image alone take "
             f"{format_bytes(fixed)}). Render a smaller grid or fewer bands, or raise SKINLAYERS_MEMORY_BUDGET_MB.")
-    peak = fixed + render_bytes(b, group, size + 2 * halo, size + 2 * halo, 0, itemsize=itemsize,
-                                weight_cache_mb=rs.weight_cache_mb)
+    peak = fixed + tile_bytes(group, size)
     return MemoryPlan(size, halo, whole, peak, budget_bytes, group)
 
 
-def _fits(b, bands, size, halo, fixed, budget, cache_mb, itemsize) -> bool:
-    need = fixed + render_bytes(b, bands, size + 2 * halo, size + 2 * halo, 0, itemsize=itemsize, weight_cache_mb=cache_mb)
-    return need <= budget
+@dataclass(frozen=True)
+class _TileBytes:
+    """The render estimate of the largest tile of a core side: its core and halo, clipped to the maps
+    (a tile at the maps' edge has no halo beyond it; one as large as the maps has none at all)."""
+
+    batch: int
+    height: int
+    width: int
+    halo: int
+    cache_mb: float
+    itemsize: int
+
+    def __call__(self, bands: int, size: int) -> float:
+        rows, cols = self._longest(self.height, size), self._longest(self.width, size)
+        return render_bytes(self.batch, bands, rows, cols, 0, itemsize=self.itemsize, weight_cache_mb=self.cache_mb)
+
+    def _longest(self, length: int, size: int) -> int:
+        """The longest tile region along an axis of ``length`` px cut in cores of ``size`` (as ``tiles`` cuts it)."""
+        return max(min(length, start + size + self.halo) - max(0, start - self.halo) for start in range(0, length, size))
 
 
-def _largest_tile(b, bands, halo, fixed, budget, cache_mb, itemsize, longest) -> int | None:
+def _largest_tile(bands: int, fixed: float, budget: float, tile_bytes: _TileBytes) -> int | None:
     """The largest tile core (a multiple of ``TILE_STEP_PX``, at least ``MIN_TILE_PX``) whose render fits
     beside what stays whole; None where not even the smallest does."""
-    size = max(MIN_TILE_PX, (longest // TILE_STEP_PX) * TILE_STEP_PX)
+    size = max(MIN_TILE_PX, (max(tile_bytes.height, tile_bytes.width) // TILE_STEP_PX) * TILE_STEP_PX)
     while size >= MIN_TILE_PX:
-        if _fits(b, bands, size, halo, fixed, budget, cache_mb, itemsize):
+        if fixed + tile_bytes(bands, size) <= budget:
             return size
         size -= TILE_STEP_PX
     return None

@@ -132,3 +132,17 @@ def test_render_goes_to_tiles_when_the_whole_does_not_fit(tmp_path, run_cli, mon
     tiled, _, header = read_spectral(tmp_path / "tiled.exr")
     assert header["tile_px"] == "32"
     torch.testing.assert_close(tiled, whole, rtol=2e-6, atol=0)
+
+
+def test_the_terms_of_a_large_frame_are_found_a_chunk_of_pixels_at_a_time(renderer, monkeypatch):
+    """``series_terms_for`` takes the pixels ``SERIES_TERMS_CHUNK_PX`` at a time (all of a camera's frame at
+    once took more memory than the render it plans): any chunk gives the worst pixel's terms, the ones a
+    render of all bands at once takes."""
+    import skinlayers.model.render.renderer as module
+
+    maps = _scene_maps(48, 0.125)
+    with torch.no_grad():
+        at_once = renderer.render(maps, Light("uniform"), WL).terms[0]
+    whole = renderer.series_terms_for(maps, WL)
+    monkeypatch.setattr(module, "SERIES_TERMS_CHUNK_PX", 7)  # many chunks, the last one short
+    assert renderer.series_terms_for(maps, WL) == whole == at_once
