@@ -13,7 +13,7 @@ import os
 
 from .errors import InputError
 
-__all__ = ["ResourceError", "available_memory_bytes", "format_bytes", "memory_budget_bytes", "require_memory"]
+__all__ = ["ResourceError", "available_memory_bytes", "format_bytes", "memory_budget_bytes", "plan_budget_bytes", "require_memory"]
 
 #: Work may take at most this share of the memory available when it starts (the rest: the process's
 #: own tensors, the allocator's slack, other programs).
@@ -59,6 +59,26 @@ def memory_budget_bytes(device=None) -> float:
         return value * 2**20
     available = available_memory_bytes(device)
     return math.inf if available is None else USABLE_SHARE * available
+
+
+def plan_budget_bytes(device=None) -> float:
+    """What a command may plan to add. ``SKINLAYERS_MEMORY_BUDGET_MB`` caps the whole process: what it
+    holds already comes off, and of the rest the usable share (a render's peak lies within about 10% of
+    its estimate either way: docs/renderer.md), so a render planned under a budget stays under it. Else
+    the usable share of the memory available now (``memory_budget_bytes``)."""
+    budget = memory_budget_bytes(device)
+    if not os.environ.get("SKINLAYERS_MEMORY_BUDGET_MB") or (device is not None and getattr(device, "type", str(device)).startswith("cuda")):
+        return budget
+    return max(USABLE_SHARE * (budget - _resident_bytes()), 0.0)
+
+
+def _resident_bytes() -> int:
+    """This process's resident memory (Linux), 0 where unknown."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return 0
 
 
 def format_bytes(n: float) -> str:

@@ -431,7 +431,7 @@ def _memory_plan(maps_file: Path, light, wl: torch.Tensor, settings: ModelSettin
     from ..formats.exr import float_attribute, read_exr_header  # noqa: PLC0415
     from ..formats.maps import MapsError  # noqa: PLC0415
     from .render.renderer import SkinRenderer  # noqa: PLC0415
-    from ..formats.resources import memory_budget_bytes  # noqa: PLC0415
+    from ..formats.resources import plan_budget_bytes  # noqa: PLC0415
     from .render.tiles import plan_render  # noqa: PLC0415
 
     if tile < 0 or 0 < tile < 16:
@@ -443,7 +443,7 @@ def _memory_plan(maps_file: Path, light, wl: torch.Tensor, settings: ModelSettin
     if not mm > 0:
         return None  # the maps' reader refuses it, naming the attribute
     renderer = SkinRenderer(settings)
-    return plan_render((1, height, width), mm, wl.numel(), light, renderer, memory_budget_bytes(device), tile or None)
+    return plan_render((1, height, width), mm, wl.numel(), light, renderer, plan_budget_bytes(device), tile or None)
 
 
 def _render_tiles(maps, light, wl: torch.Tensor, settings: ModelSettings, blur, angles: dict, plan):

@@ -289,7 +289,7 @@ def reconstruct(
     Writes maps.exr (C_m, beta_m, C_he, C_bc, C_hd, residuals, flags, sigma_*), fit.json, report.png and
     fit_settings.yaml. Example: skinlayers reconstruct my-session  (after skinlayers calibrate my-session)
     """
-    from ..formats.cube_files import read_cube_file  # noqa: PLC0415
+    from ..formats.foreign.cubes import read_cube_file  # noqa: PLC0415
     from .results.outputs import OUTPUT_NAMES, reconstruct_cube  # noqa: PLC0415
     from .settings import load_fit_settings  # noqa: PLC0415
 

@@ -1,4 +1,4 @@
-"""Cubes from other cameras and tools (``formats/cube_files.py``): ENVI, multi-page TIFF, NumPy and HDF5
+"""Cubes from other cameras and tools (``formats/foreign/cubes.py``): ENVI, multi-page TIFF, NumPy and HDF5
 read into the same ``Cube`` as ``cube.exr``, to the bit; a file without its wavelengths or its scale is
 refused in one line."""
 
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from skinlayers.formats.cube import Cube, CubeError, CubeHeader, write_cube
-from skinlayers.formats.cube_files import CUBE_READERS, read_cube_file, write_cube_file
+from skinlayers.formats.foreign.cubes import CUBE_READERS, read_cube_file, write_cube_file
 
 WL = [450.0, 500.0, 550.0, 600.0, 650.0]
 

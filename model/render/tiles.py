@@ -31,7 +31,8 @@ __all__ = ["MemoryPlan", "Tile", "TooLargeError", "plan_render", "render_tiled",
 #: Smallest tile core (px): below this a tile's halo costs more than its core.
 MIN_TILE_PX = 64
 #: Where the budget comes from, for the refusals.
-_BUDGET_SOURCE = f"SKINLAYERS_MEMORY_BUDGET_MB, else {USABLE_SHARE:.0%} of the memory available here"
+_BUDGET_SOURCE = (f"{USABLE_SHARE:.0%} of what SKINLAYERS_MEMORY_BUDGET_MB leaves beside this process's own memory, "
+                  "else of the memory available here")
 #: Tile cores are multiples of this (px).
 TILE_STEP_PX = 32
 #: Bands go in the fewest passes whose tile is at least this share of the largest tile any pass could have.

@@ -36,6 +36,7 @@ FLAG_BITS = {
     "high_residual": 4,  # residual RMS above high_residual_factor × the median pixel's
     "band_excluded": 5,  # a dead band was left out of the whole fit
     "hair": 6,  # on a hair or in its halo (hairs.py): the model has no hair, the maps here are biased
+    "structure": 7,  # the residual has a spatial shape above the noise (structure.py): a vein, a fold, a hair
 }
 
 

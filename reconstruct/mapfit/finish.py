@@ -17,6 +17,7 @@ from ..diagnosis.checks import (DataChecks, band_bias, band_bias_notes, flag_val
 from .gauss_newton import curvature_and_columns, level_step
 from ..choice.grid_choice import band_noise
 from ..diagnosis.hairs import HairFinding, find_hairs, hair_notes, hair_widening
+from ..diagnosis.structure import find_structure, structure_notes, structure_widening
 from .optimizers import OptimResult
 from ..levels.problem import LevelProblem
 from ..levels.schur import marginal_variance
@@ -63,6 +64,11 @@ def finish_fit(problem: LevelProblem, result: OptimResult, x, log_scale, checks:
     if hairs is not None:
         flags[hairs.flagged.reshape(-1).to(x.device)] |= flag_value("hair")
         checks.warn(hair_notes(hairs, int((problem.mask | hairs.flagged.to(x.device)).sum())))
+    fitted = _fitted_mask(problem)
+    structure = find_structure(residual, fitted, problem.wavelength_nm.tolist(), used.cpu(), mm)
+    if structure.count:
+        flags[structure.flagged.reshape(-1).to(x.device)] |= flag_value("structure")
+        checks.warn(structure_notes(structure, int(problem.pixels.numel())))
     clear = ~hairs.flagged.reshape(-1).to(x.device)[problem.pixels] if hairs is not None else None
     precision = _sigma_median(p, sigma_pix, problem, clear)
     checks.warn(precision_notes(precision))
@@ -71,6 +77,8 @@ def finish_fit(problem: LevelProblem, result: OptimResult, x, log_scale, checks:
     sigma[:, problem.pixels] = sigma_pix.T.to(x.dtype)
     if hairs is not None and hairs.count:
         sigma *= hair_widening(hairs.flagged.reshape(-1).to(x.device), PARAMETER_NAMES).to(sigma)
+    if structure.count:
+        sigma *= structure_widening(structure.flagged, residual, used, fitted, PARAMETER_NAMES).to(sigma)
     noise_sigma = torch.full_like(sigma, float("nan"))
     noise_sigma[:, problem.pixels] = sigma_noise.T.to(x.dtype)
     return {
@@ -80,8 +88,17 @@ def finish_fit(problem: LevelProblem, result: OptimResult, x, log_scale, checks:
         "band_bias": {f"{problem.wavelength_nm[j]:g}": round(b, 5) for j, b in bias.items()},
         "residual_over_noise": round(ratio, 4), "sigma_median": {n: round(v, 5) for n, v in precision.items()},
         "hairs": hairs.as_dict() if hairs is not None else None,
+        "structure": structure.as_dict(int(problem.pixels.numel())),
         "uncertainty": {**widening, "noise_sigma_median": {n: float(sigma_noise[:, k].median()) for k, n in enumerate(PARAMETER_NAMES)}},
     }
+
+
+def _fitted_mask(problem: LevelProblem) -> torch.Tensor:
+    """The pixels in the loss, ``(H, W)`` bool."""
+    h, w = problem.level.shape
+    mask = torch.zeros(h * w, dtype=torch.bool)
+    mask[problem.pixels.cpu()] = True
+    return mask.reshape(h, w)
 
 
 def _final_maps(problem: LevelProblem, p: torch.Tensor, mm: float) -> SkinMaps:

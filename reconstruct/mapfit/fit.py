@@ -92,7 +92,8 @@ class MapFit:
     share of the loss pixels where it does (such a map flags no pixel: ``at_bound`` is a pixel's own maps);
     ``grid_choice``: with ``map_grids: auto``, what was considered and chosen (``grid_choice.GridChoice``);
     ``forward_choice``: with ``forward`` other than heterogeneous, the forward model used and why
-    (``fidelity.ForwardChoice``)."""
+    (``fidelity.ForwardChoice``); ``hairs``, ``structure``: what ``hairs.py`` found in the cube and
+    ``structure.py`` in the residual (flagged pixels, regions, bands)."""
 
     maps: SkinMaps
     scale: float
@@ -123,6 +124,7 @@ class MapFit:
     residual_over_noise: float = math.nan
     sigma_median: dict[str, float] = field(default_factory=dict)
     hairs: dict | None = None
+    structure: dict | None = None
 
     @property
     def kept_levels(self) -> list[dict]:

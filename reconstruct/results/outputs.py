@@ -21,7 +21,7 @@ from typing import Callable
 import torch
 import yaml
 
-from ...formats.cube_files import read_cube_file
+from ...formats.foreign.cubes import read_cube_file
 from ...formats.files import atomic_write
 from ...formats.outputs import claim_outputs
 from ...formats.version import software_version
@@ -88,6 +88,7 @@ def fit_summary(fit: MapFit, settings: FitSettings, source: str = "") -> dict:
             "residual_over_noise": fit.residual_over_noise if math.isfinite(fit.residual_over_noise) else None,
             "sigma_median": fit.sigma_median,
             "hairs": fit.hairs,
+            "structure": fit.structure,
         },
         "flags": {"bits": FLAG_BITS, "counts": flags},
         "residual": residual_stats(fit.residual[:, visible], fit.residual_rms[visible], wl, used),
@@ -121,7 +122,7 @@ def reconstruct_cube(
     cube_path: str | Path, out_dir: str | Path, settings: FitSettings, *, device: str = "auto", force: bool = False,
     progress: Callable | None = None, mm_per_pixel: float | None = None,
 ) -> tuple[MapFit, dict[str, Path]]:
-    """Fit the cube at ``cube_path`` (``cube.exr`` or any format of ``formats.cube_files``; ``mm_per_pixel``
+    """Fit the cube at ``cube_path`` (``cube.exr`` or any format of ``formats.foreign.cubes``; ``mm_per_pixel``
     where that file does not say it) and write the outputs into ``out_dir``; the fit and the files' final
     paths by kind. ``progress``: ``fit_cube``'s callback."""
     out = Path(out_dir)

@@ -33,6 +33,7 @@ def _budget_mb(cfg: dict, settings, size: int, mm: float, bands: int) -> float |
     """The SKINLAYERS_MEMORY_BUDGET_MB that gives the mode's plan (None: the command's own default)."""
     from skinlayers.model.render.illumination import parse_light
     from skinlayers.model.render.renderer import SkinRenderer
+    from skinlayers.formats.resources import USABLE_SHARE
     from skinlayers.model.render.tiles import TooLargeError, plan_render
 
     mode = cfg["mode"]
@@ -44,7 +45,7 @@ def _budget_mb(cfg: dict, settings, size: int, mm: float, bands: int) -> float |
         return 1e9
     group = int(mode.split(":")[1])
     light, renderer = parse_light("uniform"), SkinRenderer(settings)
-    low, high = 1.0, 1e9  # the least budget that still plans G bands a pass, by bisection on the plan itself
+    low, high = 1.0, 1e9  # the least plan budget that still plans G bands a pass, by bisection on the plan itself
     for _ in range(60):
         mid = math.sqrt(low * high)
         try:
@@ -53,7 +54,8 @@ def _budget_mb(cfg: dict, settings, size: int, mm: float, bands: int) -> float |
             plan = None
         fits = plan is not None and plan.tile_px is None and (plan.bands_per_pass or bands) >= group
         low, high = (low, mid) if fits else (mid, high)
-    return high
+    # SKINLAYERS_MEMORY_BUDGET_MB caps the whole process: the plan gets its usable share beside what this one holds
+    return high / USABLE_SHARE + _status_mb("VmRSS")
 
 
 def main(cfg: dict) -> dict:

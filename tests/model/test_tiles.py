@@ -146,3 +146,19 @@ def test_the_terms_of_a_large_frame_are_found_a_chunk_of_pixels_at_a_time(render
     whole = renderer.series_terms_for(maps, WL)
     monkeypatch.setattr(module, "SERIES_TERMS_CHUNK_PX", 7)  # many chunks, the last one short
     assert renderer.series_terms_for(maps, WL) == whole == at_once
+
+
+def test_a_budget_set_by_hand_caps_the_whole_process(monkeypatch):
+    """``SKINLAYERS_MEMORY_BUDGET_MB`` is the process's whole budget: a render plans within the usable
+    share of what this process leaves of it (its peak lies within about 10% of the estimate)."""
+    from skinlayers.formats.resources import USABLE_SHARE, _resident_bytes, memory_budget_bytes, plan_budget_bytes
+
+    monkeypatch.setenv("SKINLAYERS_MEMORY_BUDGET_MB", "4096")
+    resident = _resident_bytes()
+    assert resident > 50 * 2**20  # this process, torch imported
+    assert memory_budget_bytes() == 4096 * 2**20
+    assert plan_budget_bytes() == pytest.approx(USABLE_SHARE * (4096 * 2**20 - resident), rel=0.02)
+    monkeypatch.setenv("SKINLAYERS_MEMORY_BUDGET_MB", "1")
+    assert plan_budget_bytes() == 0.0
+    monkeypatch.delenv("SKINLAYERS_MEMORY_BUDGET_MB")
+    assert plan_budget_bytes() == pytest.approx(memory_budget_bytes(), rel=0.05)  # the memory available, read twice

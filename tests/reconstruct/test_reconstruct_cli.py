@@ -155,7 +155,7 @@ def test_shipped_yaml_is_the_embedded_default():
 
 def test_reconstruct_fits_an_envi_cube_to_the_maps_of_its_exr(tmp_path, small_cube, small_fit, run_cli):
     """The same cube as ENVI and as cube.exr: ``skinlayers reconstruct`` gives the same maps to the bit."""
-    from skinlayers.formats.cube_files import write_cube_file
+    from skinlayers.formats.foreign.cubes import write_cube_file
 
     envi = write_cube_file(tmp_path / "arm.hdr", small_cube.cube)
     config = tmp_path / "fit.yaml"

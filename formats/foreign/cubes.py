@@ -35,8 +35,8 @@ import numpy as np
 import torch
 from pydantic import ValidationError
 
-from .cube import Cube, CubeError, CubeHeader, Provenance, read_cube
-from .settings import format_validation_error
+from ..cube import Cube, CubeError, CubeHeader, Provenance, read_cube
+from ..settings import format_validation_error
 
 __all__ = ["CUBE_READERS", "CUBE_WRITERS", "ForeignCube", "read_cube_file", "write_cube_file"]
 
