@@ -442,7 +442,8 @@ def _write_images(cube: Cube, bands: list[_Band], entries: list[dict], flags: li
     cube_r, mask = cube.reflectance.numpy(), cube.mask.numpy()
     write_contact_sheet(
         staging.path(SHEET_NAME), wavelengths, [b.thumb for b in bands], cube_r, mask,
-        [band_caption(e, k == inputs.reference_index) for k, e in enumerate(entries)], [any(f.band_nm == w for f in flags) for w in wavelengths],
+        [band_caption(e, k == inputs.reference_index, [f.code for f in flags if f.band_nm == w]) for k, (e, w) in enumerate(zip(entries, wavelengths))],
+        [any(f.band_nm == w for f in flags) for w in wavelengths],
         f"{inputs.session.name}: {len(bands)} bands, {len(flags)} flag(s), {mask.mean():.0%} of the window valid",
     )
 

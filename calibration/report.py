@@ -136,12 +136,14 @@ def band_snr(band: np.ndarray, mask: np.ndarray) -> float:
     return float(np.median(band[mask])) / sigma if sigma > 0 else float("inf")
 
 
-def band_caption(entry: dict, reference: bool) -> str:
-    """A band's caption on the contact sheet: its flash factor, SNR, alignment shift and saturated share."""
+def band_caption(entry: dict, reference: bool, flag_codes: Sequence[str] = ()) -> str:
+    """A band's caption on the contact sheet: its flash factor, SNR, alignment shift and saturated share,
+    and the flags that mark it (red) by name, so the sheet says why."""
     dx, dy = entry["alignment_shift_px"]
     if reference:
         shift = "(reference band)"
     else:
         shift = "-" if dx is None else f"{dx:+.2f}, {dy:+.2f}" + ("" if entry["alignment_applied"] else " (not applied)")
     snr = "-" if entry["snr"] is None else f"{entry['snr']:.0f}"
-    return f"flash x{entry['flash_factor']:.3f}  SNR {snr}\nshift {shift}\nsat {entry['saturated_fraction']:.1%}"
+    caption = f"flash x{entry['flash_factor']:.3f}  SNR {snr}\nshift {shift}\nsat {entry['saturated_fraction']:.1%}"
+    return caption + "".join(f"\n{code.replace('_', ' ')}" for code in dict.fromkeys(flag_codes))

@@ -174,3 +174,13 @@ def test_a_few_pixels_of_the_window_are_masked_without_a_flag():
     settings = CalibrationSettings()
     assert exposure_flags(460.0, 0.0, 0.3 * MIN_FLAGGED_SHARE, settings) == []
     assert [f.code for f in exposure_flags(460.0, 2 * MIN_FLAGGED_SHARE, 2 * MIN_FLAGGED_SHARE, settings)] == ["saturated", "underexposed"]
+
+
+def test_the_contact_sheet_says_why_a_band_is_marked():
+    from skinlayers.calibration.report import band_caption
+
+    entry = {"alignment_shift_px": [0.5, -0.25], "alignment_applied": True, "snr": 120.0, "flash_factor": 1.01,
+             "saturated_fraction": 0.003}
+    plain = band_caption(entry, False)
+    marked = band_caption(entry, False, ["saturated", "gray_card_drift", "saturated"])
+    assert marked.split("\n") == plain.split("\n") + ["saturated", "gray card drift"]
