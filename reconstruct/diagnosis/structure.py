@@ -95,14 +95,15 @@ def find_structure(residual: torch.Tensor, mask: torch.Tensor, wavelength_nm: li
     # a band's offset over the whole patch is no shape (the band-bias check's business): taken out first
     r = r[bands] - r[bands][:, valid].median(dim=1).values[:, None, None]
     bands_nm = [wavelength_nm[j] for j in bands]
-    z = _smoothed_z(r, valid, sigma, width_px)
+    smoothed, white = _smoothed(r, valid, sigma, width_px)
+    z = smoothed / white
     statistic = (z**2).sum(0)
     # found on the wide smoothing, placed on a pixel's own neighbourhood: the wide kernel spreads a vein's
     # residual over its sides, where the pixel's own (one-pixel smoothing) residual is the noise's
-    near = (_smoothed_z(r, valid, sigma, 1.0) ** 2).sum(0) > stats.chi2.isf(LOCAL_FALSE_ALARM, len(bands))
+    narrow, narrow_white = _smoothed(r, valid, sigma, 1.0)
+    near = ((narrow / narrow_white) ** 2).sum(0) > stats.chi2.isf(LOCAL_FALSE_ALARM, len(bands))
     # and large enough to matter: the smoothed residual's RMS over the bands at least AMPLITUDE of a pixel's noise
-    weight = ndimage.gaussian_filter(valid.numpy().astype(np.float64), width_px, mode="constant")
-    amplitude = np.sqrt((z**2).mean(0)) / (2.0 * math.sqrt(math.pi) * width_px) / np.sqrt(np.maximum(weight, 1e-12))
+    amplitude = np.sqrt((smoothed**2).mean(0))
     candidate = (statistic > stats.chi2.isf(FALSE_ALARM, len(bands))) & (amplitude >= AMPLITUDE) & near & valid.numpy()
     labels, count = ndimage.label(candidate, structure=np.ones((3, 3)))
     keep = np.zeros_like(candidate)
@@ -119,18 +120,17 @@ def find_structure(residual: torch.Tensor, mask: torch.Tensor, wavelength_nm: li
     return StructureFinding(torch.from_numpy(keep), [float(w) for w in shows], regions)
 
 
-def _smoothed_z(r: torch.Tensor, valid: torch.Tensor, sigma: torch.Tensor, width_px: float) -> np.ndarray:
-    """Per band, the residual averaged over a Gaussian of ``width_px`` (the mask's pixels only), in units of
-    what white noise of σ would leave there: ``(L, H, W)``."""
-    weight = ndimage.gaussian_filter(valid.numpy().astype(np.float64), width_px, mode="constant")
-    # white noise of σ through the normalised kernel k: σ‖k‖₂ (‖k‖₂² of a 2-D Gaussian of σ_k px: 1/(4π σ_k²)),
-    # over the mask's share w of the kernel about σ‖k‖₂/√w
-    norm = 1.0 / (2.0 * math.sqrt(math.pi) * width_px)
+def _smoothed(r: torch.Tensor, valid: torch.Tensor, sigma: torch.Tensor, width_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per band, the residual averaged over a Gaussian of ``width_px`` (the mask's pixels only) in units of
+    the band's noise σ, ``(L, H, W)``; and what white noise leaves of σ there, ``(H, W)``: σ‖k‖₂ for the
+    normalised kernel k (‖k‖₂² of a 2-D Gaussian of σ_k px: 1/(4π σ_k²)), over the mask's share w of the
+    kernel about σ‖k‖₂/√w."""
+    weight = np.maximum(ndimage.gaussian_filter(valid.numpy().astype(np.float64), width_px, mode="constant"), 1e-12)
     out = np.empty((r.shape[0], *valid.shape))
     for j in range(r.shape[0]):
         total = ndimage.gaussian_filter(np.where(valid.numpy(), r[j].numpy(), 0.0), width_px, mode="constant")
-        out[j] = total / np.maximum(weight, 1e-12) / (float(sigma[j]) * norm / np.sqrt(np.maximum(weight, 1e-12)))
-    return out
+        out[j] = total / weight / float(sigma[j])
+    return out, 1.0 / (2.0 * math.sqrt(math.pi) * width_px) / np.sqrt(weight)
 
 
 def structure_notes(finding: StructureFinding, fitted_pixels: int) -> list[str]:

@@ -64,7 +64,7 @@ def finish_fit(problem: LevelProblem, result: OptimResult, x, log_scale, checks:
     if hairs is not None:
         flags[hairs.flagged.reshape(-1).to(x.device)] |= flag_value("hair")
         checks.warn(hair_notes(hairs, int((problem.mask | hairs.flagged.to(x.device)).sum())))
-    fitted = _fitted_mask(problem)
+    fitted = problem.mask.cpu()  # the loss pixels, (H, W)
     structure = find_structure(residual, fitted, problem.wavelength_nm.tolist(), used.cpu(), mm)
     if structure.count:
         flags[structure.flagged.reshape(-1).to(x.device)] |= flag_value("structure")
@@ -91,14 +91,6 @@ def finish_fit(problem: LevelProblem, result: OptimResult, x, log_scale, checks:
         "structure": structure.as_dict(int(problem.pixels.numel())),
         "uncertainty": {**widening, "noise_sigma_median": {n: float(sigma_noise[:, k].median()) for k, n in enumerate(PARAMETER_NAMES)}},
     }
-
-
-def _fitted_mask(problem: LevelProblem) -> torch.Tensor:
-    """The pixels in the loss, ``(H, W)`` bool."""
-    h, w = problem.level.shape
-    mask = torch.zeros(h * w, dtype=torch.bool)
-    mask[problem.pixels.cpu()] = True
-    return mask.reshape(h, w)
 
 
 def _final_maps(problem: LevelProblem, p: torch.Tensor, mm: float) -> SkinMaps:
