@@ -110,9 +110,10 @@ def open_devices(
 
 def _wheel(rig: RigConfig, simulated: bool, time_scale: float, port: str | None) -> FilterWheel:
     if simulated:
-        from .hardware.simdevices import SimulatedWheel  # noqa: PLC0415
+        from .hardware.simdevices import SimulatedTunableFilter, SimulatedWheel  # noqa: PLC0415
 
-        return SimulatedWheel(rig.wheel.position_count, time_scale=time_scale)
+        kind = SimulatedWheel if rig.wheel.position_count in SimulatedWheel.POSITION_COUNTS else SimulatedTunableFilter
+        return kind(rig.wheel.position_count, time_scale=time_scale)
     if not port:
         raise InputError("no filter wheel port: set wheel.port in the rig file or pass --wheel-port")
     from .hardware.fw102c import FW102C  # noqa: PLC0415

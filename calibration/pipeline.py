@@ -53,7 +53,7 @@ from .errors import CalibrationError
 from .raw import RawImage, cell_centroid, cell_weights, read_raw
 from .report import Thumbnail, band_caption, band_snr, thumbnail, write_contact_sheet
 from .settings import CalibrationSettings
-from .window import box_filter, find_window, rectify, superpixel_to_raw_xy
+from .window import box_filter, find_window, rectify, superpixel_to_raw_xy, window_interior
 from ..formats.threads import library_threads
 
 log = logging.getLogger(__name__)
@@ -238,8 +238,9 @@ def _calibrate_band(
         # the card read against the Spectralon in the reference frame (checks.card_spectrum_flags)
         card_reading = (c.gray_ref / float(np.median(c.f_img[inside])) * c.factors.spectralon_reflectance
                         if c.gray_ref is not None else None)
-        sat_fraction = float(np.mean(sat[inside]))
-        under_fraction = float(np.mean((c.under & ~sat)[inside]))
+        interior = window_interior(inside, win.blur_px)
+        sat_fraction = float(np.mean(sat[interior]))
+        under_fraction = float(np.mean((c.under & ~sat)[interior]))
     with clock("rectify"):
         rectified = rectify(refl, win.corners, inputs.rig.geometry.rectify_px, settings.interpolation)
         valid_rect = rectify(valid.astype(np.float32), win.corners, inputs.rig.geometry.rectify_px, "linear")

@@ -100,7 +100,7 @@ class FilterWheel(_Instrument):
         """Number of filter positions, 6 or 12; ``WheelError`` if the wheel reports another."""
         count = self._position_count()
         if count not in self.POSITION_COUNTS:
-            raise self._error(f"it reports {count} positions, expected 6 or 12")
+            raise self._error(f"it reports {count} positions, expected {' or '.join(map(str, self.POSITION_COUNTS))}")
         return count
 
     @abstractmethod

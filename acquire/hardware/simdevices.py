@@ -36,6 +36,7 @@ class SimulatedWheel(FilterWheel):
     """
 
     name = "simulated wheel"
+    POSITION_COUNTS_SAID = "6 or 12"
 
     def __init__(
         self, position_count: int = 12, *, position: int = 1, seconds_per_step: float = 0.4, settle_s: float = 0.1,
@@ -43,7 +44,7 @@ class SimulatedWheel(FilterWheel):
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
         if position_count not in self.POSITION_COUNTS:
-            raise ValueError(f"a filter wheel has 6 or 12 positions, not {position_count}")
+            raise ValueError(f"a {self.name} has {self.POSITION_COUNTS_SAID} positions, not {position_count}")
         if not 1 <= position <= position_count:
             raise ValueError(f"start position {position} outside 1–{position_count}")
         if time_scale < 0 or seconds_per_step < 0 or settle_s < 0:
@@ -76,6 +77,20 @@ class SimulatedWheel(FilterWheel):
             self._sleep(self._scale * (self._settle_s + self._step_s * steps))
         self._position = target
         return target
+
+
+class SimulatedTunableFilter(SimulatedWheel):
+    """A tunable filter (liquid-crystal or acousto-optic) stepping through up to ``MAX_SETTINGS`` pass bands
+    as a wheel steps through positions: the simulated rig of many bands (31 of 10 nm, 400–700 nm, as
+    hyperspectral skin datasets are taken), setting 1 its closed state."""
+
+    name = "simulated tunable filter"
+    MAX_SETTINGS = 64
+    POSITION_COUNTS = tuple(range(2, MAX_SETTINGS + 2))
+    POSITION_COUNTS_SAID = f"2–{MAX_SETTINGS + 1}"
+
+    def identify(self) -> str:
+        return f"skinlayers simulated tunable filter ({self._count} settings)"
 
 
 class SimulatedCamera(Camera):

@@ -24,6 +24,9 @@ __all__ = ["draw_report", "plot_report"]
 
 #: The flags panel's colours, one per flag bit (tab10), and the order a pixel's first flag is drawn in.
 _FLAG_COLOURS = "tab10"
+#: The most bands drawn: a hyperspectral cube (31 bands, or hundreds) shows this many, spread over its range
+#: with the band that fits worst among them (at 31 bands the 93 panels took 13 of the command's 20 s).
+REPORT_BANDS = 9
 #: The PNG's resolution (dots per inch).
 REPORT_DPI = 110
 
@@ -58,9 +61,11 @@ def draw_report(fit: MapFit, measured: torch.Tensor, undetermined: dict[str, str
     plain = FuncFormatter(lambda v, _: f"{v:.3g}")
 
     masked = ((fit.flags >> FLAG_BITS["masked"]) & 1).bool().cpu().numpy()
+    res = fit.residual.detach().cpu().numpy()
+    band_rms = np.sqrt(np.mean(res[:, ~masked] ** 2, axis=1)) if (~masked).any() else np.zeros(len(res))
+    shown = report_bands(band_rms)
     wl = fit.wavelength_nm.tolist()
-    n_bands = len(wl)
-    cols = max(n_bands, 7)
+    cols = max(len(shown), 7)
     fig, axes = plt.subplots(4, cols, figsize=(1.9 * cols, 8.4), squeeze=False)
     for ax in axes.ravel():
         ax.set_axis_off()
@@ -76,35 +81,55 @@ def draw_report(fit: MapFit, measured: torch.Tensor, undetermined: dict[str, str
 
     meas = measured.detach().cpu().numpy()
     fitted = fit.image.detach().cpu().numpy()
-    res = fit.residual.detach().cpu().numpy()
-    for j, w in enumerate(wl):
+    for col, j in enumerate(shown):
+        w = wl[j]
         vis = meas[j][~masked]
         lo, hi = (float(np.percentile(vis, 1)), float(np.percentile(vis, 99))) if vis.size else (0.0, 1.0)
         used = bool(fit.checks.bands_used[j])
-        show(axes[0, j], meas[j], f"measured {w:g} nm" + ("" if used else " (left out)"), "gray", lo, hi)
-        show(axes[1, j], fitted[j], f"fitted {w:g} nm", "gray", lo, hi)
+        show(axes[0, col], meas[j], f"measured {w:g} nm" + ("" if used else " (left out)"), "gray", lo, hi)
+        show(axes[1, col], fitted[j], f"fitted {w:g} nm", "gray", lo, hi)
         lim = float(np.percentile(np.abs(res[j][~masked]), 99)) if vis.size else 1.0
-        show(axes[2, j], res[j], f"fit − measured {w:g}", "RdBu_r", -lim, lim)
-    for i, n in enumerate(PARAMETER_NAMES):
-        values = getattr(fit.maps, n)[0].detach().cpu().numpy()
-        vis = values[~masked] if (~masked).any() else values.ravel()
-        lo, hi = float(vis.min()), float(vis.max())
-        if n in undetermined:
-            show(axes[3, i], values, f"{_LABELS[n]}\nundetermined: {undetermined[n]}", "magma", bar=False)
-        elif hi - lo <= 1e-3 * max(abs(hi), 1e-12):  # one value for the patch (a map on one node): no round-off speckle
-            lo, hi = lo * 0.9, hi * 1.1 + 1e-12
-            show(axes[3, i], values, f"{_LABELS[n]}\n= {np.median(vis):.3g} (patch)", "magma", lo, hi, bar=False)
-        else:
-            show(axes[3, i], values, _LABELS[n], "magma")
+        show(axes[2, col], res[j], f"fit − measured {w:g}", "RdBu_r", -lim, lim)
+    _map_panels(axes[3], fit, masked, undetermined, show)
     show(axes[3, 5], fit.residual_rms.detach().cpu().numpy(), "residual RMS", "inferno")
     _flags_panel(axes[3, 6], fit.flags.cpu().numpy(), plt)
     title = (f"scale {fit.scale:.3f} · residual RMS {float(fit.residual_rms[~torch.from_numpy(masked)].pow(2).mean().sqrt()):.4f} · "
              f"{fit.cpu_s:.1f} s CPU")
+    if len(shown) < len(wl):
+        title += f" · {len(shown)} of {len(wl)} bands drawn (spread over the range, the worst fit {wl[int(np.argmax(band_rms))]:g} nm among them)"
     if fit.forward_choice:  # the forward model and why (reconstruct/choice/fidelity.py)
         title += f"\nforward model: {fit.forward_choice['chosen']} — {fit.forward_choice['reason']}"
     fig.suptitle(title, fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def _map_panels(row, fit: MapFit, masked: np.ndarray, undetermined: dict[str, str], show) -> None:
+    """The five parameter maps into the axes ``row``; ``show(ax, img, title, cmap, vmin, vmax, bar)`` draws one."""
+    for i, n in enumerate(PARAMETER_NAMES):
+        values = getattr(fit.maps, n)[0].detach().cpu().numpy()
+        vis = values[~masked] if (~masked).any() else values.ravel()
+        lo, hi = float(vis.min()), float(vis.max())
+        if n in undetermined:
+            show(row[i], values, f"{_LABELS[n]}\nundetermined: {undetermined[n]}", "magma", bar=False)
+        elif hi - lo <= 1e-3 * max(abs(hi), 1e-12):  # one value for the patch (a map on one node): no round-off speckle
+            lo, hi = lo * 0.9, hi * 1.1 + 1e-12
+            show(row[i], values, f"{_LABELS[n]}\n= {np.median(vis):.3g} (patch)", "magma", lo, hi, bar=False)
+        else:
+            show(row[i], values, _LABELS[n], "magma")
+
+
+def report_bands(band_rms: np.ndarray, most: int = REPORT_BANDS) -> list[int]:
+    """The bands drawn, by index: all of them up to ``most``; beyond, ``most`` spread evenly from the first
+    to the last, the one nearest the worst fit (largest ``band_rms`` ``(L,)``) replaced by it."""
+    n = len(band_rms)
+    if n <= most:
+        return list(range(n))
+    picks = [int(round(v)) for v in np.linspace(0, n - 1, most)]
+    worst = int(np.argmax(band_rms))
+    if worst not in picks:
+        picks[int(np.argmin([abs(p - worst) for p in picks]))] = worst
+    return sorted(picks)
 
 
 def _flags_panel(ax, flags: np.ndarray, plt) -> None:

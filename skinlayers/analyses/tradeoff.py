@@ -208,14 +208,14 @@ def make_session(spec: SessionSpec, folder: Path, scene_over: dict | None = None
     if simulation_over:
         simulation = folder / "simulation.yaml"
         simulation.write_text(yaml.safe_dump(merge(yaml.safe_load(default_simulation_path().read_text()), simulation_over), sort_keys=False))
-    simulate_session(folder / "session", session_rig(spec.size_px), scene, spec.seed, "cpu", truth, kept_renders=kept,
+    simulate_session(folder / "session", session_rig(spec.size_px, spec.bands), scene, spec.seed, "cpu", truth, kept_renders=kept,
                      simulation=simulation)
     calibrate_session(folder / "session", folder / "calibrated")
 
 
 def _spec_of(case: dict) -> SessionSpec:
-    physics, seed, size = case["scene"].split("-")
-    return SessionSpec(physics, int(seed[1:]), int(size[:-2]))
+    physics, seed, size, *bands = case["scene"].split("-")
+    return SessionSpec(physics, int(seed[1:]), int(size[:-2]), *(int(b[:-1]) for b in bands))
 
 
 def _render(scene, over: dict, device: str) -> torch.Tensor:

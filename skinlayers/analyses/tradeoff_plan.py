@@ -118,15 +118,17 @@ KEY = ("part", "config", "scene")
 
 @dataclass(frozen=True)
 class SessionSpec:
-    """A simulated session: its truth's physics, seed and cube side (px)."""
+    """A simulated session: its truth's physics, seed, cube side (px) and the rig's bands (the default
+    rig's nine, or the hyperspectral rig's 31: ``skinlayers.analyses.truths.session_rig``)."""
 
     physics: str
     seed: int
     size_px: int
+    bands: int = 9
 
     @property
     def name(self) -> str:
-        return f"{self.physics}-s{self.seed}-{self.size_px}px"
+        return f"{self.physics}-s{self.seed}-{self.size_px}px" + ("" if self.bands == 9 else f"-{self.bands}b")
 
 
 def all_configs() -> dict[str, dict]:

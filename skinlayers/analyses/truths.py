@@ -29,13 +29,18 @@ import numpy as np
 import torch
 
 __all__ = ["FORWARD_SCENES", "FORWARD_WAVELENGTHS_NM", "SESSIONS", "SESSION_PX", "SESSION_PX_64", "SESSION_SEEDS",
-           "SESSION_SEEDS_64", "TRUTH_DIR", "ForwardScene", "MIN_RECTIFY_PX", "demo_scene", "session_rig",
+           "SESSION_SEEDS_64", "TRUTH_DIR", "HYPERSPECTRAL_BANDS", "RIG_BANDS", "hyperspectral_bands", "ForwardScene", "MIN_RECTIFY_PX", "demo_scene", "session_rig",
            "forward_scene", "forward_truth", "make_forward_truths", "make_session_truth", "session_renders",
            "shipped_session"]
 
 #: The coarsest rectified window the calibration works on: at 64 px the gray card's region, moved by the
 #: subject's motion, reaches into the window's (so --size 32 rectifies at 128 px, not 64).
 MIN_RECTIFY_PX = 128
+#: The default rig's bands, and the hyperspectral rig's: 31 bands of 10 nm from 400 to 700 nm (Hyper-Skin's
+#: layout), position 1 its opaque slot.
+RIG_BANDS = 9
+HYPERSPECTRAL_BANDS = 31
+HYPERSPECTRAL_FIRST_NM, HYPERSPECTRAL_LAST_NM, HYPERSPECTRAL_FWHM_NM = 400.0, 700.0, 10.0
 #: Where the shipped truths live (package data).
 TRUTH_DIR = Path(__file__).resolve().parents[1] / "data" / "truths"
 #: The forward scenes' wavelengths: blue, green and red light reach the dermis differently.
@@ -87,11 +92,46 @@ def demo_scene() -> dict:
     return scene
 
 
-def session_rig(size: int):
-    """The default rig at a ``size``² cube, its camera simulated (as the demo photographs with)."""
+def session_rig(size: int, bands: int = RIG_BANDS):
+    """The default rig at a ``size``² cube, its camera simulated (as the demo photographs with); with
+    ``bands`` = ``HYPERSPECTRAL_BANDS`` the hyperspectral rig of ``hyperspectral_bands``."""
     from ..acquire.hardware.rig import load_rig  # noqa: PLC0415
 
-    return load_rig(geometry={"cube_px": size, "rectify_px": max(2 * size, MIN_RECTIFY_PX)}, camera={"driver": "simulated"})
+    over = {"geometry": {"cube_px": size, "rectify_px": max(2 * size, MIN_RECTIFY_PX)}, "camera": {"driver": "simulated"}}
+    if bands != RIG_BANDS:
+        if bands != HYPERSPECTRAL_BANDS:
+            raise ValueError(f"a session rig has {RIG_BANDS} or {HYPERSPECTRAL_BANDS} bands, not {bands}")
+        nine = load_rig(**over)
+        over["bands"] = hyperspectral_bands(nine.bands)
+        over["wheel"] = {"position_count": len(over["bands"]) + 1}
+        over["name"] = f"{bands} bands, {HYPERSPECTRAL_FIRST_NM:g}-{HYPERSPECTRAL_LAST_NM:g} nm"
+    return load_rig(**over)
+
+
+def hyperspectral_bands(nine: list) -> list[dict]:
+    """``HYPERSPECTRAL_BANDS`` bands of ``HYPERSPECTRAL_FWHM_NM`` from ``HYPERSPECTRAL_FIRST_NM`` to
+    ``HYPERSPECTRAL_LAST_NM`` (Hyper-Skin's layout, as a tunable filter would take them), exposed as the
+    nine bands are: each band's ISO makes flash × filter × sensor × ISO the nine bands' median (they lie
+    within 0.84–1 of one another), taken to the nearest third stop the simulated camera offers. Below
+    420 nm and above 680 nm the light falls under 7% of 550 nm's and the top ISO leaves those frames
+    darker (noisier) than the rest, as on a real bench."""
+    from ..acquire.simulator._optics import band_spectrum  # noqa: PLC0415
+    from ..acquire.simulator.simulation_settings import load_simulation_settings  # noqa: PLC0415
+
+    sim = load_simulation_settings(None)
+
+    def signal(centre_nm: float, fwhm_nm: float) -> float:
+        spectrum = band_spectrum(centre_nm, fwhm_nm, sim.filters.wavelength_samples, sim.flash.temperature_k, sim.sensor.sensitivity)
+        return float(spectrum.channel_signal.max())
+
+    exposure = float(np.median([signal(b.wavelength_nm, b.fwhm_nm) * b.iso for b in nine]))
+    stops = np.log(np.asarray(sim.sensor.iso_values, dtype=np.float64))
+    centres = np.linspace(HYPERSPECTRAL_FIRST_NM, HYPERSPECTRAL_LAST_NM, HYPERSPECTRAL_BANDS)
+    isos = [int(round(math.exp(stops[np.abs(stops - math.log(exposure / signal(w, HYPERSPECTRAL_FWHM_NM))).argmin()])))
+            for w in centres]
+    ref = nine[0]
+    return [{"wavelength_nm": float(w), "fwhm_nm": HYPERSPECTRAL_FWHM_NM, "filter_position": i + 2, "iso": iso,
+             "shutter_s": ref.shutter_s, "aperture_f": ref.aperture_f} for i, (w, iso) in enumerate(zip(centres, isos))]
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from skinlayers.calibration.window import (
     raw_to_superpixel_xy,
     rectify,
     superpixel_to_raw_xy,
+    window_interior,
 )
 
 SHAPE = (300, 400)
@@ -117,3 +118,16 @@ def test_box_filter_and_coordinates():
     np.testing.assert_allclose(superpixel_to_raw_xy([[0.0, 0.0]]), [[0.5, 0.5]])  # cell 0 spans photosites 0 and 1
     shuffled = np.array([[9.0, 9.0], [0.0, 0.0], [9.0, 0.0], [0.0, 9.0]])
     np.testing.assert_array_equal(order_corners(shuffled), [[0, 0], [9, 0], [9, 9], [0, 9]])
+
+
+def test_the_windows_interior_leaves_out_its_edge_by_the_blur():
+    inside = np.zeros((40, 40), bool)
+    inside[5:35, 5:35] = True
+    sharp = window_interior(inside, 0.3)
+    assert sharp.sum() == 28 * 28 and sharp[6:34, 6:34].all()
+    blurred = window_interior(inside, 1.2)  # 2σ = 2.4 px: three superpixels off each side
+    assert blurred.sum() == 24 * 24 and blurred[8:32, 8:32].all()
+    assert window_interior(inside, float("nan")).sum() == 28 * 28
+    tiny = np.zeros((40, 40), bool)
+    tiny[10:12, 10:12] = True
+    assert (window_interior(tiny, 1.0) == tiny).all()  # nothing left: the window as it is
