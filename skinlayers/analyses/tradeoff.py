@@ -31,7 +31,7 @@ from typing import Optional
 import torch
 import typer
 
-from .tradeoff_plan import (COLUMNS, FAITHFUL, FORWARD_CONFIGS, INVERSE_CONFIGS, KEY, MAPS, OWN_REFERENCE, TARGETS, SessionSpec,
+from .tradeoff_plan import (COLUMNS, FAITHFUL, FORWARD_CONFIGS, INVERSE_CONFIGS, KEY, MAPS, OWN_REFERENCE, SESSION_KEYS, TARGETS, SessionSpec,
                             TradeoffPlan, forward_cases, inverse_cases, make_plan, scale_cases)
 from .sweep import AnalysisResult, PeakMemory, SweepTable, analysis_device, echo_outputs, pareto_front, time_to_front
 from ..formats.threads import THREADS_HELP, command_threads
@@ -134,7 +134,7 @@ class _Runner:
 
         over = self.configs[case["config"]]
         k = int(over.get("bin", 1))
-        settings = load_fit_settings(None, **{key: v for key, v in over.items() if key != "bin"})
+        settings = load_fit_settings(None, **{key: v for key, v in over.items() if key not in SESSION_KEYS})
         if case["truth"] == "none":
             cube_path, session = self.cube, None
         else:

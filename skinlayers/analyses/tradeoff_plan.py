@@ -4,7 +4,7 @@ the forward scenes, the inverse sessions and the scale sizes — with the knobs 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 
@@ -86,7 +86,12 @@ INVERSE_CONFIGS: dict[str, dict] = {
     "per-pixel maps": {"forward": "heterogeneous", "map_cell_mm": _ALL_PER_PIXEL},
     "float64": {"dtype": "float64"},
     "binned 2x2": {"bin": 2},
+    # the session through the hyperspectral rig (31 bands of 10 nm, 400–700 nm): its own scene, with "-31b"
+    # in its name; diffusion truths only (the Monte Carlo sessions were rendered at the nine bands)
+    "31 bands": {"bands": 31},
 }
+#: Keys of a configuration that choose its session or cube, not the fit's settings.
+SESSION_KEYS = ("bin", "bands")
 #: --quick runs these (the full run all of them).
 QUICK_FORWARD = ("default", "paper", "transport", "transport, segment", "series 0.1", "series 1e-3", "blur fft", "float64")
 #: The scale sweep's configurations.
@@ -97,7 +102,9 @@ SCALE_CONFIGS: dict[str, dict] = {
                                           "max_iterations": SCALE_PAPER_STEPS // FIRST_ORDER_CAP, "ftol": 1e-12},
 }
 QUICK_INVERSE = ("default", "fixed", "homogeneous", "paper", "transport", "transport, C_hd 0.75 mm", "transport, segment",
-                 "transport, equal weights", "ftol 1e-2", "binned 2x2")
+                 "transport, equal weights", "ftol 1e-2", "binned 2x2", "31 bands")
+#: Configurations measured only on sessions of these truths, in every run.
+ONLY_ON = {"31 bands": ("diffusion",)}
 QUICK_SCALE_PX = (32, 64)
 #: Marked on the charts.
 MARKED = {"default": "default (--model auto)", "fixed": "--model fixed", "paper": "DWRR08's scheme"}
@@ -167,11 +174,12 @@ def make_plan(quick: bool = False, seed: int = 0, cube: Path | None = None) -> T
     sessions += [SessionSpec("transport", s, SESSION_PX_64) for s in SESSION_SEEDS_64[:n]]
     return TradeoffPlan(
         forward=list(QUICK_FORWARD if quick else FORWARD_CONFIGS),
-        inverse=list(QUICK_INVERSE if quick else INVERSE_CONFIGS) if cube is None else [FAITHFUL, *(QUICK_INVERSE if quick else INVERSE_CONFIGS)],
+        inverse=list(QUICK_INVERSE if quick else INVERSE_CONFIGS) if cube is None else
+        [FAITHFUL, *(c for c in (QUICK_INVERSE if quick else INVERSE_CONFIGS) if "bands" not in configs[c])],
         sessions=[] if cube is not None else sessions,
         scale_sizes=[] if cube is not None else (list(QUICK_SCALE_PX) if quick else [64, 128, 256, 512]),
         scale_configs=["default", "fixed"] if quick else list(SCALE_CONFIGS), scale_seed=DIFFUSION_SEED_BASE + seed, cube=cube,
-        quick=quick, configs=configs, only_on={"paper": QUICK_PAPER_TRUTHS} if quick else {})
+        quick=quick, configs=configs, only_on={**ONLY_ON, **({"paper": QUICK_PAPER_TRUTHS} if quick else {})})
 
 
 def forward_cases(plan: TradeoffPlan) -> list[dict]:
@@ -185,9 +193,9 @@ def inverse_cases(plan: TradeoffPlan) -> list[dict]:
     if plan.cube is not None:
         return [{"part": "inverse", "config": c, "scene": plan.cube.name, "truth": "none", **_inverse_knobs(plan.configs[c])}
                 for c in plan.inverse]
-    return [{"part": "inverse", "config": c, "scene": s.name, "truth": s.physics, "size_px": s.size_px,
-             **_inverse_knobs(plan.configs[c])} for s in plan.sessions for c in plan.inverse
-            if s.physics in plan.only_on.get(c, (s.physics,))]
+    return [{"part": "inverse", "config": c, "scene": replace(s, bands=plan.configs[c].get("bands", s.bands)).name,
+             "truth": s.physics, "size_px": s.size_px, **_inverse_knobs(plan.configs[c])}
+            for s in plan.sessions for c in plan.inverse if s.physics in plan.only_on.get(c, (s.physics,))]
 
 
 def scale_cases(plan: TradeoffPlan) -> list[dict]:
@@ -207,7 +215,7 @@ def _forward_knobs(over: dict) -> dict:
 def _inverse_knobs(over: dict) -> dict:
     from ..reconstruct import load_fit_settings  # noqa: PLC0415
 
-    s = load_fit_settings(None, **{k: v for k, v in over.items() if k != "bin"})
+    s = load_fit_settings(None, **{k: v for k, v in over.items() if k not in SESSION_KEYS})
     cells = s.cells
     return {"physics": s.model.profiles, "coupling": s.model.render.coupling, "dtype": s.dtype, "method": s.method,
             "start": s.start, "model": s.forward, "coarsest_px": s.coarsest_px, "ftol": s.ftol, "map_grids": s.map_grids,
