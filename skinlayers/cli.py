@@ -18,7 +18,7 @@ from . import demo as demo_cli
 from .analyses import band_design
 from .analyses import stability as stability_analysis
 from .analyses import tradeoff as tradeoff_analysis
-from .studies import batch as batch_cli
+from .studies import batch_cli
 from .acquire import cli as acquire_cli
 from .calibration import cli as calibration_cli
 from .formats.errors import SkinlayersError

@@ -285,3 +285,40 @@ def test_a_task_undoes_the_nannys_malloc_setting(tmp_path):
     pages = 100 * (4 << 20) // 4096
     assert faults["0"] > pages // 2, faults  # the setting's cost, as the nanny leaves it
     assert faults["1"] < pages // 20, faults
+
+
+def test_cubes_from_other_cameras_are_fitted_beside_the_sessions(study, tmp_path, client):
+    """Issue 59: a study folder holding ENVI cubes beside its sessions fits them (no calibration), each
+    into ``<STEM>_reconstruction``, to the maps of the same cube fitted from its session; a CSV gives a
+    ``.npz`` that does not say its pixel side its ``mm_per_pixel``, and without it the cube fails alone."""
+    import numpy as np
+
+    from skinlayers.calibration import calibrate_session
+    from skinlayers.formats.cube import read_cube
+    from skinlayers.formats.foreign.cubes import write_cube_file
+    from skinlayers.model.patch.maps_io import read_maps
+    from skinlayers.studies.batch import fit_dir, read_study, reconstruction_dir, run_batch
+
+    for seed in SEEDS[1:]:
+        shutil.rmtree(study / f"s{seed}")
+    calibrate_session(study / "s1", study / "s1_calibrated")
+    cube = read_cube(study / "s1_calibrated" / "cube.exr")
+    (study / "camera").mkdir()
+    write_cube_file(study / "camera" / "arm.hdr", cube)
+    assert [s.name for s in read_study(study)] == ["camera/arm.hdr", "s1"]  # not the calibrated cube.exr
+
+    result = run_batch(read_study(study), _light(), tmp_path / "out", client=client)
+    assert {n: o.ran for n, o in result.outcomes.items()} == {"camera/arm.hdr": ("reconstruct",), "s1": ("reconstruct",)}
+    assert fit_dir(study / "camera" / "arm.hdr") == study / "camera" / "arm_reconstruction"
+    ours, theirs = read_maps(reconstruction_dir(study / "s1") / "maps.exr"), read_maps(study / "camera" / "arm_reconstruction" / "maps.exr")
+    assert all(np.array_equal(getattr(ours, n).numpy(), getattr(theirs, n).numpy()) for n in ("C_m", "beta_m", "C_he", "C_hd"))
+
+    write_cube_file(tmp_path / "full.npz", cube)
+    with np.load(tmp_path / "full.npz") as f:
+        np.savez(tmp_path / "bare.npz", **{k: f[k] for k in f.files if k != "mm_per_pixel"})
+    shutil.copy(tmp_path / "bare.npz", tmp_path / "bare2.npz")
+    listing = tmp_path / "study.csv"
+    listing.write_text(f"session,mm_per_pixel\nbare.npz,{cube.header.mm_per_pixel!r}\nbare2.npz,\n")
+    outcomes = run_batch(read_study(listing), _light(), tmp_path / "out2", client=client).outcomes
+    assert outcomes["bare.npz"].status == "done" and (tmp_path / "bare_reconstruction" / "fit.json").is_file()
+    assert outcomes["bare2.npz"].status == "failed" and "mm" in outcomes["bare2.npz"].error and "\n" not in outcomes["bare2.npz"].error

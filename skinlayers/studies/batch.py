@@ -36,11 +36,10 @@ import time
 import traceback
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Optional, Sequence
+from typing import Callable, Sequence
 
-import typer
 
-from ..formats.cube import reconstruction_dir
+from ..formats.cube import CALIBRATED_SUFFIX, RECONSTRUCTION_SUFFIX, reconstruction_dir
 from ..formats.errors import InputError
 from ..formats.files import atomic_write
 from .allocator import use_task_allocator
@@ -57,6 +56,8 @@ MANIFEST_COLUMNS = {"subject": "subject", "site": "site", "date": "created"}
 LEDGER_NAME, TABLE_NAME, RECORD_NAME = "batch.json", "study.csv", "study.json"
 #: Columns the study table writes itself: a study's list may not name its own columns so.
 RESERVED_COLUMNS = ("status", "error", "seconds", "pixels")
+#: The study's own folder: ``<STUDY>_study`` beside the study.
+STUDY_SUFFIX = "_study"
 DEVICES = ("cpu", "cuda", "auto")
 #: Dask's nanny starts each worker with ``MALLOC_TRIM_THRESHOLD_=65536``, which fixes glibc's mmap threshold:
 #: every tensor temporary is then mapped and unmapped anew, and the fit slows down (docs/batch.md,
@@ -116,17 +117,33 @@ class BatchResult:
 
 
 def read_study(study: str | Path) -> list[StudySession]:
-    """The sessions of a study folder (each folder below it holding ``manifest.json``, in path order) or
-    of a CSV (a ``session`` column; paths relative to the CSV; other columns kept as given)."""
+    """The sessions of a study folder (each folder below it holding ``manifest.json``, and each cube file
+    from another camera, ``_study_cubes``; in path order) or of a CSV (a ``session`` column naming a
+    session folder or a cube file; paths relative to the CSV; other columns kept as given)."""
     study = Path(study)
     if study.is_dir():
-        found = sorted(p.parent for p in study.rglob("manifest.json"))
+        found = sorted([p.parent for p in study.rglob("manifest.json")] + _study_cubes(study))
         if not found:
-            raise InputError(f"{study}: no sessions (folders holding manifest.json) in this folder")
+            raise InputError(f"{study}: no sessions (folders holding manifest.json) or cube files in this folder")
         return [StudySession(p.resolve(), p.name if p == study else p.relative_to(study).as_posix()) for p in found]
     if not study.is_file():
         raise InputError(f"{study}: no such study folder or CSV")
     return _sessions_of_csv(study)
+
+
+def _study_cubes(study: Path) -> list[Path]:
+    """The cube files of other cameras in a study folder (``formats.foreign.cubes``' suffixes; an ENVI
+    cube by its ``.hdr``), not those the commands wrote (inside a ``_calibrated``, ``_reconstruction`` or
+    ``_study`` folder) nor inside a session."""
+    from ..formats.foreign.cubes import CUBE_READERS  # noqa: PLC0415
+
+    written = (CALIBRATED_SUFFIX, RECONSTRUCTION_SUFFIX, STUDY_SUFFIX)
+
+    def among_outputs(path: Path) -> bool:
+        folders = path.parents[:len(path.relative_to(study).parts) - 1]  # between the study and the file
+        return any(f.name.endswith(written) or (f / "manifest.json").is_file() for f in folders)
+
+    return [p for p in study.rglob("*") if p.suffix.lower() in CUBE_READERS and p.is_file() and not among_outputs(p)]
 
 
 def _sessions_of_csv(path: Path) -> list[StudySession]:
@@ -153,6 +170,21 @@ def _sessions_of_csv(path: Path) -> list[StudySession]:
     return sessions
 
 
+def fit_dir(entry: Path) -> Path:
+    """Where an entry's fit goes: ``<SESSION>_reconstruction`` beside a session folder, ``<STEM>_reconstruction``
+    beside a cube file (several cubes of one folder each get their own)."""
+    entry = Path(entry)
+    return entry.parent / f"{entry.stem}{RECONSTRUCTION_SUFFIX}" if entry.suffix else reconstruction_dir(entry)
+
+
+def is_cube_file(path: Path) -> bool:
+    """A calibrated cube the study fits without a calibration: ``cube.exr`` or any format of
+    ``formats.foreign.cubes`` (ENVI, TIFF, NumPy, HDF5), by its suffix."""
+    from ..formats.foreign.cubes import CUBE_READERS  # noqa: PLC0415
+
+    return path.suffix.lower() in (".exr", *CUBE_READERS)
+
+
 def process_session(session: StudySession, options: BatchOptions) -> SessionOutcome:
     """One task: the session's missing steps, then its row of the study table. Never raises for the
     session's own faults: they are the outcome's ``error``."""
@@ -162,10 +194,13 @@ def process_session(session: StudySession, options: BatchOptions) -> SessionOutc
         use_task_allocator()  # a worker started by hand runs with Dask's malloc setting: undo it (allocator.py)
         _task_threads(options)
         outcome.manifest = _manifest_columns(session.path)
-        outcome.ran = _run_steps(session.path, options)
+        if is_cube_file(session.path):
+            outcome.ran = _fit_cube_file(session, options)
+        else:
+            outcome.ran = _run_steps(session.path, options)
         outcome.status = "done" if outcome.ran else "skipped"
-        if (reconstruction_dir(session.path) / "fit.json").is_file():
-            outcome.summary = session_summary(reconstruction_dir(session.path))
+        if (fit_dir(session.path) / "fit.json").is_file():
+            outcome.summary = session_summary(fit_dir(session.path))
     except Exception as exc:  # noqa: BLE001 (any fault of one session is its outcome, not the study's end)
         outcome.status, outcome.error = "failed", _one_line(exc)
         if not isinstance(exc, (InputError, OSError)):
@@ -199,6 +234,25 @@ def _run_steps(session: Path, options: BatchOptions) -> tuple[str, ...]:
                          force=True)
         ran.append("reconstruct")
     return tuple(ran)
+
+
+def _fit_cube_file(entry: StudySession, options: BatchOptions) -> tuple[str, ...]:
+    """A cube file of the study fitted into ``fit_dir`` unless its fit is complete; its pixel side from the
+    file, or from the study list's ``mm_per_pixel`` column where the file does not say it."""
+    from ..reconstruct import load_fit_settings, reconstruct_cube  # noqa: PLC0415
+
+    if not entry.path.is_file():
+        raise InputError(f"{entry.path}: no such cube file")
+    if "reconstruct" not in options.steps or (fit_dir(entry.path) / "fit.json").is_file():
+        return ()
+    mm = entry.columns.get("mm_per_pixel") or None
+    try:
+        mm = None if mm is None else float(mm)
+    except ValueError:
+        raise InputError(f"{entry.name}: mm_per_pixel {mm!r} is not a number") from None
+    reconstruct_cube(entry.path, fit_dir(entry.path), options.fit_settings or load_fit_settings(None),
+                     device=_task_device(options.device), force=True, mm_per_pixel=mm)
+    return ("reconstruct",)
 
 
 def _manifest_columns(session: Path) -> dict:
@@ -373,7 +427,7 @@ def write_study(out: str | Path, sessions: Sequence[StudySession], outcomes: dic
     if figures:
         from .study_charts import plot_study  # noqa: PLC0415 (matplotlib only when figures are drawn)
 
-        maps = {s.name: reconstruction_dir(s.path) / "maps.exr" for s in sessions if outcomes[s.name].summary}
+        maps = {s.name: fit_dir(s.path) / "maps.exr" for s in sessions if outcomes[s.name].summary}
         paths.update(plot_study(out, rows, record, maps))
     return paths
 
@@ -381,106 +435,4 @@ def write_study(out: str | Path, sessions: Sequence[StudySession], outcomes: dic
 def default_study_out(study: Path) -> Path:
     """``<STUDY>_study`` beside the study folder or CSV."""
     study = study.resolve()
-    return study.parent / f"{study.stem if study.is_file() else study.name}_study"
-
-
-def batch(
-    study: Path = typer.Argument(..., help="A folder of sessions (each folder below it holding manifest.json) or a CSV "
-                                           "listing them (a 'session' column, paths relative to the CSV; other columns kept)."),
-    out: Optional[Path] = typer.Option(None, "-o", "--out", help="Where the study's table, record and figures go "
-                                                                 "(default: <STUDY>_study beside it)."),
-    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="A Dask scheduler's address (tcp://host:8786); default: "
-                                                                      "a LocalCluster on this machine."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Worker processes of the LocalCluster (default: one per "
-                                                                  "GPU, else one per usable core)."),
-    steps: str = typer.Option(",".join(STEPS), "--steps", help="Steps of each session: calibrate, reconstruct or both."),
-    config: Optional[Path] = typer.Option(None, "--config", help="Fit settings YAML (configs/fit.yaml lists every key)."),
-    calibration_config: Optional[Path] = typer.Option(None, "--calibration-config", help="Calibration settings YAML."),
-    group: list[str] = typer.Option([], "--group", help="A column to group the statistics by (repeatable; default: every "
-                                                        "column that groups sessions)."),
-    device: str = typer.Option("auto", "--device", help="cpu, cuda or auto (each worker its GPU where there are GPUs)."),
-) -> None:
-    """Calibrate and reconstruct every session of a study on Dask, then its statistics.
-
-    Example: skinlayers batch my-study               (a LocalCluster here; outputs beside each session)
-             skinlayers batch study.csv --scheduler tcp://10.0.0.5:8786   (a Dask cluster: docs/batch.md)
-    A rerun does only what is missing (failed sessions again); batch.json records every session's outcome.
-    """
-    sessions = read_study(study)
-    options = _checked_options(steps, config, calibration_config, device, workers, scheduler)
-    _check_groups(group, sessions)
-    out = out or default_study_out(study)
-    from ..formats.outputs import refuse_inside_session  # noqa: PLC0415
-
-    refuse_inside_session(out, "study")
-    typer.echo(f"study: {len(sessions)} session(s) from {study}; steps {', '.join(options.steps)}", err=True)
-    with _study_progress(len(sessions)) as on_outcome:
-        result = run_batch(sessions, options, out, scheduler=scheduler, workers=workers, on_outcome=on_outcome)
-    paths = write_study(out, sessions, result.outcomes, group)
-    typer.echo(f"{result.count('done')} done, {result.count('skipped')} already complete, {result.count('failed')} failed "
-               f"on {result.workers} worker(s) in {result.wall_s:.0f} s")
-    for o in result.outcomes.values():
-        if o.status == "failed":
-            typer.echo(f"failed: {o.session}: {o.error}")
-    for kind, path in {"ledger": out / LEDGER_NAME, **paths}.items():
-        typer.echo(f"{kind}: {path}")
-    if result.count("failed"):
-        raise typer.Exit(1)
-
-
-def _checked_options(steps: str, config: Path | None, calibration_config: Path | None, device: str,
-                     workers: int | None, scheduler: str | None) -> BatchOptions:
-    """The options checked, and the settings files read, before any worker starts."""
-    from ..calibration.settings import load_calibration_settings  # noqa: PLC0415
-    from ..reconstruct import load_fit_settings  # noqa: PLC0415
-
-    chosen = tuple(s.strip() for s in steps.split(",") if s.strip())
-    if not chosen or any(s not in STEPS for s in chosen):
-        raise InputError(f"--steps {steps!r}: choose from {', '.join(STEPS)}, comma-separated")
-    if device not in DEVICES:
-        raise InputError(f"--device {device!r}: expected {', '.join(DEVICES)}")
-    if workers is not None and workers < 1:
-        raise InputError(f"--workers {workers}: expected at least 1")
-    if workers is not None and scheduler is not None:
-        raise InputError("--workers sizes the LocalCluster; with --scheduler the cluster's own workers run the tasks "
-                         "(start more with `dask worker`)")
-    return BatchOptions(tuple(s for s in STEPS if s in chosen), load_fit_settings(config),
-                        load_calibration_settings(calibration_config), device)
-
-
-def _check_groups(group: Sequence[str], sessions: Sequence[StudySession]) -> None:
-    """``--group`` columns must be the study list's or the manifest's, refused before any work."""
-    known = {*MANIFEST_COLUMNS, *(c for s in sessions for c in s.columns)}
-    unknown = [g for g in group if g not in known]
-    if unknown:
-        raise InputError(f"--group {', '.join(unknown)}: not a column of the study (its columns: {', '.join(sorted(known))})")
-
-
-class _study_progress:
-    """A bar over the study's sessions with the time left; each outcome advances it."""
-
-    def __init__(self, total: int) -> None:
-        from rich.console import Console  # noqa: PLC0415
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn  # noqa: PLC0415
-
-        self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                                 TextColumn("left"), TimeRemainingColumn(), console=Console(stderr=True))
-        self.task = self.progress.add_task("sessions", total=total)
-        self.failed = 0
-
-    def __enter__(self) -> Callable[[SessionOutcome], None]:
-        self.progress.start()
-        return self.advance
-
-    def advance(self, outcome: SessionOutcome) -> None:
-        self.failed += outcome.status == "failed"
-        self.progress.update(self.task, advance=1, description=f"sessions ({self.failed} failed)" if self.failed else "sessions")
-        if outcome.status == "failed":
-            self.progress.console.print(f"failed: {outcome.session}: {outcome.error}")
-
-    def __exit__(self, *exc) -> None:
-        self.progress.stop()
-
-
-def register(app: typer.Typer) -> None:
-    app.command("batch")(batch)
+    return study.parent / f"{study.stem if study.is_file() else study.name}{STUDY_SUFFIX}"
