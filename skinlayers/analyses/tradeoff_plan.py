@@ -89,6 +89,7 @@ INVERSE_CONFIGS: dict[str, dict] = {
     # the session through the hyperspectral rig (31 bands of 10 nm, 400–700 nm): its own scene, with "-31b"
     # in its name; diffusion truths only (the Monte Carlo sessions were rendered at the nine bands)
     "31 bands": {"bands": 31},
+    "31 bands, noise weights": {"bands": 31, "band_weights": "noise"},
 }
 #: Keys of a configuration that choose its session or cube, not the fit's settings.
 SESSION_KEYS = ("bin", "bands")
@@ -104,7 +105,7 @@ SCALE_CONFIGS: dict[str, dict] = {
 QUICK_INVERSE = ("default", "fixed", "homogeneous", "paper", "transport", "transport, C_hd 0.75 mm", "transport, segment",
                  "transport, equal weights", "ftol 1e-2", "binned 2x2", "31 bands")
 #: Configurations measured only on sessions of these truths, in every run.
-ONLY_ON = {"31 bands": ("diffusion",)}
+ONLY_ON = {"31 bands": ("diffusion",), "31 bands, noise weights": ("diffusion",)}
 QUICK_SCALE_PX = (32, 64)
 #: Marked on the charts.
 MARKED = {"default": "default (--model auto)", "fixed": "--model fixed", "paper": "DWRR08's scheme"}
