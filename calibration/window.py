@@ -420,8 +420,8 @@ def box_filter(image: np.ndarray, factor: int) -> np.ndarray:
 def window_interior(inside: np.ndarray, blur_px: float) -> np.ndarray:
     """The window ``inside`` ``(H, W)`` bool less its edge: the superpixels within the edge's blur (2σ, at
     least one) of the tape, which are part tape and dark. They stay masked, but are not counted in the
-    exposure fractions: on a clean 64² session all the under-exposed superpixels lay there (0.1–0.5% of
-    the window at 600–700 nm), and a flag for them taught a user to ignore flags."""
+    exposure fractions, so a clean session raises no exposure flag (docs/calibration.md, "Figures from
+    the code": where a clean session's under-exposed superpixels lay)."""
     reach = max(1, math.ceil(2.0 * blur_px)) if math.isfinite(blur_px) else 1
     interior = cv2.erode(inside.astype(np.uint8), np.ones((2 * reach + 1, 2 * reach + 1), np.uint8)).astype(bool)
     return interior if interior.any() else inside

@@ -24,8 +24,9 @@ __all__ = ["draw_report", "plot_report"]
 
 #: The flags panel's colours, one per flag bit (tab10), and the order a pixel's first flag is drawn in.
 _FLAG_COLOURS = "tab10"
-#: The most bands drawn: a hyperspectral cube (31 bands, or hundreds) shows this many, spread over its range
-#: with the band that fits worst among them (at 31 bands the 93 panels took 13 of the command's 20 s).
+#: The most bands drawn: a hyperspectral cube (tens of bands, or hundreds) shows this many, spread over its
+#: range with the band that fits worst among them (what drawing every band cost: docs/reconstruct.md,
+#: "Figures from the code").
 REPORT_BANDS = 9
 #: The PNG's resolution (dots per inch).
 REPORT_DPI = 110

@@ -36,8 +36,8 @@ __all__ = ["FORWARD_SCENES", "FORWARD_WAVELENGTHS_NM", "SESSIONS", "SESSION_PX",
 #: The coarsest rectified window the calibration works on: at 64 px the gray card's region, moved by the
 #: subject's motion, reaches into the window's (so --size 32 rectifies at 128 px, not 64).
 MIN_RECTIFY_PX = 128
-#: The default rig's bands, and the hyperspectral rig's: 31 bands of 10 nm from 400 to 700 nm (Hyper-Skin's
-#: layout), position 1 its opaque slot.
+#: The default rig's bands, and the hyperspectral rig's (Hyper-Skin's layout: a band of the width every
+#: 10 nm across the visible), setting 1 its closed state.
 RIG_BANDS = 9
 HYPERSPECTRAL_BANDS = 31
 HYPERSPECTRAL_FIRST_NM, HYPERSPECTRAL_LAST_NM, HYPERSPECTRAL_FWHM_NM = 400.0, 700.0, 10.0

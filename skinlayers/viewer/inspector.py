@@ -2,9 +2,9 @@
 the flags set there. What the napari dock widget (``skinlayers.viewer.widget``) draws under the cursor;
 no napari and no Qt here.
 
-The fitted spectrum is the fit's render: ``maps.exr`` keeps the residual fit − measured per band
-(``res_<nm>``), so measured + residual is the render the fit ended on (to float32 rounding). The measured
-spectrum is the cube the fit read (``fit.json``'s ``input``, or a cube given), its ±2σ each band's noise
+The fitted spectrum is the fit's render: ``maps.exr`` keeps the residual per band (``res_<nm>``: the
+render less the cube), so the cube plus the residual is the render the fit ended on (to float32
+rounding). The cube's spectrum is the one the fit read (``fit.json``'s ``input``, or a cube given), its ±2σ each band's noise
 as the fit estimates it (``band_noise``: the cube's own pixel-to-pixel scatter).
 """
 

@@ -1,5 +1,5 @@
-"""The napari dock widget: at the pixel under the cursor, the measured spectrum with ±2σ, the fitted one,
-the maps with their σ and the flags set there (``FitAtPixels`` reads them; this draws them, in Qt)."""
+"""The napari dock widget: at the pixel under the cursor, the cube's spectrum with its noise (two σ either
+side), the fitted one, the maps with their σ and the flags set there (``FitAtPixels`` reads them; this draws them, in Qt)."""
 
 from __future__ import annotations
 
