@@ -322,3 +322,24 @@ def test_cubes_from_other_cameras_are_fitted_beside_the_sessions(study, tmp_path
     outcomes = run_batch(read_study(listing), _light(), tmp_path / "out2", client=client).outcomes
     assert outcomes["bare.npz"].status == "done" and (tmp_path / "bare_reconstruction" / "fit.json").is_file()
     assert outcomes["bare2.npz"].status == "failed" and "mm" in outcomes["bare2.npz"].error and "\n" not in outcomes["bare2.npz"].error
+
+
+def test_what_a_study_folder_takes_for_a_cube_and_where_each_fit_goes(tmp_path):
+    from skinlayers.formats.errors import InputError
+    from skinlayers.studies.batch import fit_dir, read_study, reconstruction_dir
+
+    study = tmp_path / "study"
+    (study / "2024.05.01").mkdir(parents=True)
+    (study / "2024.05.01" / "manifest.json").write_text("{}")
+    (study / "2024.05.01" / "frame.tif").write_bytes(b"")  # inside a session: its own, not a cube
+    (study / "cam").mkdir()
+    for name in ("arm.hdr", "DARKREF_arm.hdr", "WHITEREF_arm.hdr"):
+        (study / "cam" / name).write_bytes(b"")
+    (study / "cam_reconstruction").mkdir()
+    (study / "cam_reconstruction" / "old.npz").write_bytes(b"")  # the commands' outputs are not cubes
+    assert [s.name for s in read_study(study)] == ["2024.05.01", "cam/arm.hdr"]
+    assert fit_dir(study / "2024.05.01") == reconstruction_dir(study / "2024.05.01")  # a dotted session folder
+    assert read_study(study / "2024.05.01")[0].name == "2024.05.01"  # a session as the study: its frames are not cubes
+    (study / "cam" / "arm.tif").write_bytes(b"")
+    with pytest.raises(InputError, match="both be fitted into"):
+        read_study(study)

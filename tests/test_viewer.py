@@ -101,6 +101,21 @@ def test_a_session_opens_as_its_frames_per_band(done):
         assert float(layer.data.max()) > 0
 
 
+def test_without_a_cube_of_this_fit_the_inspector_shows_the_maps_and_says_why(done, tmp_path):
+    from skinlayers.formats.cube import read_cube
+    from skinlayers.formats.foreign.cubes import write_cube_file
+    from skinlayers.viewer.inspector import FitAtPixels
+
+    _, cube_path, maps, fit = done
+    cube = read_cube(cube_path)
+    other = write_cube_file(tmp_path / "other.npz", type(cube)(cube.reflectance[:6], cube.mask,
+                                                               cube.header.model_copy(update={"wavelengths_nm": cube.header.wavelengths_nm[:6], "band_fwhm_nm": None})))
+    at = FitAtPixels(maps, cube=other)
+    report = at.at(8, 8)
+    assert report.measured is None and report.fitted is None and "does not match" in at.cube_problem
+    assert report.parameters["C_m"][0] == pytest.approx(float(fit.maps.C_m[0, 8, 8]))
+
+
 def test_the_inspector_shows_the_fits_render_at_the_cursors_pixel(done, qt_app):
     from skinlayers.viewer.widget import PixelInspector
 

@@ -122,14 +122,15 @@ def _map_panels(row, fit: MapFit, masked: np.ndarray, undetermined: dict[str, st
 
 def report_bands(band_rms: np.ndarray, most: int = REPORT_BANDS) -> list[int]:
     """The bands drawn, by index: all of them up to ``most``; beyond, ``most`` spread evenly from the first
-    to the last, the one nearest the worst fit (largest ``band_rms`` ``(L,)``) replaced by it."""
+    to the last, the inner one nearest the worst fit (largest ``band_rms`` ``(L,)``) replaced by it."""
     n = len(band_rms)
     if n <= most:
         return list(range(n))
     picks = [int(round(v)) for v in np.linspace(0, n - 1, most)]
     worst = int(np.argmax(band_rms))
     if worst not in picks:
-        picks[int(np.argmin([abs(p - worst) for p in picks]))] = worst
+        inner = range(1, most - 1)  # the ends stay: the drawn bands span the range
+        picks[min(inner, key=lambda k: abs(picks[k] - worst))] = worst
     return sorted(picks)
 
 

@@ -56,6 +56,8 @@ MANIFEST_COLUMNS = {"subject": "subject", "site": "site", "date": "created"}
 LEDGER_NAME, TABLE_NAME, RECORD_NAME = "batch.json", "study.csv", "study.json"
 #: Columns the study table writes itself: a study's list may not name its own columns so.
 RESERVED_COLUMNS = ("status", "error", "seconds", "pixels")
+#: A hyperspectral camera's dark and white reference captures beside its cubes (Specim's names): not skin.
+REFERENCE_CAPTURES = ("DARKREF", "WHITEREF")
 #: The study's own folder: ``<STUDY>_study`` beside the study.
 STUDY_SUFFIX = "_study"
 DEVICES = ("cpu", "cuda", "auto")
@@ -125,10 +127,21 @@ def read_study(study: str | Path) -> list[StudySession]:
         found = sorted([p.parent for p in study.rglob("manifest.json")] + _study_cubes(study))
         if not found:
             raise InputError(f"{study}: no sessions (folders holding manifest.json) or cube files in this folder")
-        return [StudySession(p.resolve(), p.name if p == study else p.relative_to(study).as_posix()) for p in found]
+        return _distinct_fits([StudySession(p.resolve(), p.name if p == study else p.relative_to(study).as_posix()) for p in found], study)
     if not study.is_file():
         raise InputError(f"{study}: no such study folder or CSV")
-    return _sessions_of_csv(study)
+    return _distinct_fits(_sessions_of_csv(study), study)
+
+
+def _distinct_fits(sessions: list[StudySession], source: Path) -> list[StudySession]:
+    """``sessions``, refused in one line where two would write one fit folder (``arm.hdr`` beside ``arm.tif``
+    or a session ``arm``)."""
+    seen: dict[Path, str] = {}
+    for s in sessions:
+        other = seen.setdefault(fit_dir(s.path), s.name)
+        if other != s.name:
+            raise InputError(f"{source}: {other} and {s.name} would both be fitted into {fit_dir(s.path)}; rename one")
+    return sessions
 
 
 def _study_cubes(study: Path) -> list[Path]:
@@ -138,12 +151,15 @@ def _study_cubes(study: Path) -> list[Path]:
     from ..formats.foreign.cubes import CUBE_READERS  # noqa: PLC0415
 
     written = (CALIBRATED_SUFFIX, RECONSTRUCTION_SUFFIX, STUDY_SUFFIX)
+    if (study / "manifest.json").is_file():
+        return []  # the study is one session: its files are its frames
 
     def among_outputs(path: Path) -> bool:
         folders = path.parents[:len(path.relative_to(study).parts) - 1]  # between the study and the file
         return any(f.name.endswith(written) or (f / "manifest.json").is_file() for f in folders)
 
-    return [p for p in study.rglob("*") if p.suffix.lower() in CUBE_READERS and p.is_file() and not among_outputs(p)]
+    return [p for p in study.rglob("*") if p.suffix.lower() in CUBE_READERS and p.is_file() and not among_outputs(p)
+            and not p.name.upper().startswith(REFERENCE_CAPTURES)]
 
 
 def _sessions_of_csv(path: Path) -> list[StudySession]:
@@ -174,7 +190,7 @@ def fit_dir(entry: Path) -> Path:
     """Where an entry's fit goes: ``<SESSION>_reconstruction`` beside a session folder, ``<STEM>_reconstruction``
     beside a cube file (several cubes of one folder each get their own)."""
     entry = Path(entry)
-    return entry.parent / f"{entry.stem}{RECONSTRUCTION_SUFFIX}" if entry.suffix else reconstruction_dir(entry)
+    return entry.parent / f"{entry.stem}{RECONSTRUCTION_SUFFIX}" if is_cube_file(entry) and not entry.is_dir() else reconstruction_dir(entry)
 
 
 def is_cube_file(path: Path) -> bool:

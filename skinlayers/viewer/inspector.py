@@ -67,8 +67,13 @@ class FitAtPixels:
         self.residual = np.stack([f.extra[n].numpy() for n in names]) if all(n in f.extra for n in names) and names else None
         self.cube_path = Path(cube) if cube is not None else self._cube_from_fit()
         self.measured = self.noise_sigma = None
+        self.cube_problem = ""
         if self.cube_path is not None:
-            self._read_cube(self.cube_path)
+            try:
+                self._read_cube(self.cube_path)
+            except (ValueError, OSError) as exc:  # a cube that is not this fit's, or too small for its noise
+                self.measured = self.noise_sigma = None
+                self.cube_problem = str(exc)
 
     @property
     def shape(self) -> tuple[int, int]:

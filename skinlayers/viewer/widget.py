@@ -51,10 +51,10 @@ class PixelInspector(QWidget):
         pixel = fit.pixel_of(*position[-2:]) if fit is not None and len(position) >= 2 else None
         if pixel is None:
             return
-        self.show_report(fit.at(*pixel))
+        self.show_report(fit.at(*pixel), fit.cube_problem)
 
-    def show_report(self, report: PixelReport) -> None:
-        """Draw ``report``: the spectra above, the parameters and flags below."""
+    def show_report(self, report: PixelReport, note: str = "") -> None:
+        """Draw ``report``: the spectra above, the parameters and flags below (and ``note``: why no cube)."""
         self.report = report
         self.figure.clear()
         ax = self.figure.add_subplot()
@@ -69,4 +69,4 @@ class PixelInspector(QWidget):
         if report.measured is not None:
             ax.legend(fontsize=7, frameon=False)
         self.canvas.draw_idle()
-        self.text.setText("\n".join(report.lines()))
+        self.text.setText("\n".join(report.lines() + ([f"no spectra: {note}"] if note else [])))

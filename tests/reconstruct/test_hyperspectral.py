@@ -118,5 +118,7 @@ def test_the_report_draws_nine_bands_the_worst_among_them():
     assert len(shown) == REPORT_BANDS and shown[0] == 0 and shown[-1] == 30 and 5 in shown
     assert shown == sorted(set(shown))
     assert report_bands(np.ones(9)) == list(range(9))
+    rms[1] = 6.0  # the worst beside the first band: an inner pick gives way, the ends stay
+    assert report_bands(rms)[:2] == [0, 1] and report_bands(rms)[-1] == 30
     rms[30] = 9.0  # the worst already among the spread: nothing replaced
     assert report_bands(rms) == [int(round(v)) for v in np.linspace(0, 30, REPORT_BANDS)]
