@@ -9,6 +9,7 @@ atomic (a temporary file in the folder, then a rename), as every output of the t
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import tempfile
@@ -19,7 +20,7 @@ import torch
 
 from .errors import InputError
 
-__all__ = ["ExrError", "band_channels", "float_attribute", "read_exr", "read_exr_header", "read_spectral", "write_exr", "write_spectral"]
+__all__ = ["ExrError", "band_channels", "float_attribute", "json_attribute", "read_exr", "read_exr_header", "read_spectral", "write_exr", "write_spectral"]
 
 _BAND = re.compile(r"^([A-Za-z]+)_(\d+(?:\.\d+)?)$")
 
@@ -97,6 +98,13 @@ def read_exr_header(path: str | Path, error: type[Exception] = ExrError) -> tupl
     except (RuntimeError, OSError, ValueError, KeyError, TypeError) as exc:
         raise error(f"{path}: not a readable OpenEXR file ({exc})") from None
     return y1 - y0 + 1, x1 - x0 + 1, header
+
+
+def json_attribute(header: dict, key: str, default):
+    """A header attribute written as JSON text (a dict, as ``flag_bits``) or as the value itself (a float
+    list, as ``wavelengths_nm``); ``default`` where the header lacks it."""
+    value = header.get(key, default)
+    return json.loads(value) if isinstance(value, (str, bytes)) else value
 
 
 def float_attribute(header: dict, key: str, path: Path, error: type[Exception] = ExrError) -> float:

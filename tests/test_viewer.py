@@ -136,3 +136,11 @@ def test_the_inspector_shows_the_fits_render_at_the_cursors_pixel(done, qt_app):
     assert "C_hd =" in widget.text.text() and "flags:" in widget.text.text()
     viewer.cursor.position = (-5.0, -5.0)  # off the maps: the last pixel's report stays
     assert (widget.report.row, widget.report.col) == (3, 11)
+
+
+def test_each_pixel_is_labelled_by_its_lowest_flag():
+    from skinlayers.reconstruct.diagnosis.checks import FLAG_BITS, first_flag
+
+    flags = np.array([0, (1 << FLAG_BITS["hair"]) | 1, 1 << FLAG_BITS["structure"]])
+    assert first_flag(flags).tolist() == [0, 1, FLAG_BITS["structure"] + 1]
+    assert first_flag(torch.tensor([0, 4, 128, 132]), {"a": 2, "b": 7}).tolist() == [0, 3, 8, 3]

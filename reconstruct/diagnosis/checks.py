@@ -22,7 +22,7 @@ from ...formats.errors import InputError
 from ...model import N_PARAMS
 
 __all__ = ["BAND_BIAS_LIMIT", "FLAG_BITS", "MAP_TARGETS", "MIN_BANDS", "RESIDUAL_NOISE_LIMIT", "SMOOTH_BAND_RATIO", "DataChecks",
-           "band_bias", "band_bias_notes", "check_cube", "flag_value", "precision_notes", "residual_notes", "smooth_band_notes"]
+           "band_bias", "band_bias_notes", "check_cube", "first_flag", "flag_value", "precision_notes", "residual_notes", "smooth_band_notes"]
 
 #: Bands a pixel needs: one per parameter and one for the global scale.
 MIN_BANDS = N_PARAMS + 1
@@ -71,6 +71,15 @@ MEDIAN_ABS_NORMAL = 0.6745
 
 def flag_value(name: str) -> int:
     return 1 << FLAG_BITS[name]
+
+
+def first_flag(flags, flag_bits: dict[str, int] = FLAG_BITS):
+    """Each pixel's first flag (the lowest bit set) as bit + 1, 0 where none: a labels image of ``flags``
+    (an int array or tensor of any shape; ``flag_bits``: name → bit, a file's own where it says them)."""
+    first = flags * 0
+    for _, bit in sorted(flag_bits.items(), key=lambda kv: -kv[1]):  # the lowest bit written last: it wins
+        first[(flags >> bit) & 1 == 1] = bit + 1
+    return first
 
 
 @dataclass

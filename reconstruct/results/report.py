@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ...model import PARAMETER_NAMES
-from ..diagnosis.checks import FLAG_BITS
+from ..diagnosis.checks import FLAG_BITS, first_flag
 from ..mapfit.fit import MapFit
 
 __all__ = ["draw_report", "plot_report"]
@@ -140,12 +140,9 @@ def _flags_panel(ax, flags: np.ndarray, plt) -> None:
     from matplotlib.patches import Patch  # noqa: PLC0415
 
     colours = plt.get_cmap(_FLAG_COLOURS).colors
-    first = np.full(flags.shape, -1)
-    for name, bit in sorted(FLAG_BITS.items(), key=lambda kv: -kv[1]):  # lowest bit drawn last: it wins
-        first[(flags >> bit) & 1 == 1] = bit
     cmap = ListedColormap(["white", *colours[: len(FLAG_BITS)]])
     ax.set_axis_on()
-    ax.imshow(first + 1, cmap=cmap, vmin=0, vmax=len(FLAG_BITS), interpolation="nearest")
+    ax.imshow(first_flag(flags), cmap=cmap, vmin=0, vmax=len(FLAG_BITS), interpolation="nearest")
     ax.set_xticks([])
     ax.set_yticks([])
     ax.set_title("flags (first set)", fontsize=7)

@@ -49,17 +49,15 @@ class FitAtPixels:
     """
 
     def __init__(self, maps_path: str | Path, cube: str | Path | None = None) -> None:
+        from ..formats.exr import json_attribute  # noqa: PLC0415
         from ..formats.maps import read_map_file  # noqa: PLC0415
         from ..model import PARAMETER_NAMES  # noqa: PLC0415
 
         self.maps_path = Path(maps_path)
         f = read_map_file(self.maps_path)
         self.mm_per_pixel = float(f.mm_per_pixel)
-        header = f.header
-        bits = header.get("flag_bits", "{}")
-        self.flag_bits: dict[str, int] = json.loads(bits) if isinstance(bits, (str, bytes)) else dict(bits)
-        waves = header.get("wavelengths_nm", "[]")
-        self.wavelength_nm = np.asarray(json.loads(waves) if isinstance(waves, (str, bytes)) else waves, dtype=np.float64)
+        self.flag_bits: dict[str, int] = dict(json_attribute(f.header, "flag_bits", {}))
+        self.wavelength_nm = np.asarray(json_attribute(f.header, "wavelengths_nm", []), dtype=np.float64)
         self.params = {n: f.params[n].numpy() for n in PARAMETER_NAMES}
         self.sigma = {n: f.extra[f"sigma_{n}"].numpy() for n in PARAMETER_NAMES if f"sigma_{n}" in f.extra}
         self.flags = f.extra["flags"].numpy().astype(np.int64) if "flags" in f.extra else None

@@ -18,7 +18,6 @@ its ``metadata["skinlayers"]`` the file it came from and what it is, which the p
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Callable
 
@@ -73,26 +72,21 @@ def _is_maps(path: Path) -> bool:
     return set(PARAMETER_NAMES) <= names
 
 
-def _attribute(header: dict, key: str, default):
-    """A header attribute that the EXR writer stored as JSON text or as the value itself."""
-    value = header.get(key, default)
-    return json.loads(value) if isinstance(value, (str, bytes)) else value
-
-
 def _meta(kind: str, path: Path, **more) -> dict:
     return {"skinlayers": {"kind": kind, "path": str(path.resolve()), **more}}
 
 
 def maps_layers(path: str | Path) -> list[LayerData]:
     """A fit's ``maps.exr`` as layers: maps, σ, residual stack, residual RMS and flags."""
+    from ..formats.exr import json_attribute  # noqa: PLC0415
     from ..formats.maps import read_map_file  # noqa: PLC0415
 
     path = Path(path)
     f = read_map_file(path)
     mm = float(f.mm_per_pixel)
     header = f.header
-    flag_bits = _attribute(header, "flag_bits", {})
-    wavelengths = [float(w) for w in _attribute(header, "wavelengths_nm", [])]
+    flag_bits = json_attribute(header, "flag_bits", {})
+    wavelengths = [float(w) for w in json_attribute(header, "wavelengths_nm", [])]
     scale2 = {"scale": (mm, mm), "units": ("mm", "mm"), "axis_labels": ("y", "x")}
     layers: list[LayerData] = []
     for n, (label, unit, cmap) in MAP_LOOKS.items():
@@ -121,9 +115,9 @@ def maps_layers(path: str | Path) -> list[LayerData]:
 
 def _flags_layer(flags: np.ndarray, flag_bits: dict[str, int], path: Path, scale2: dict) -> LayerData:
     """Each pixel's first flag (lowest bit) as a label, 0 where none; the labels' names in ``features``."""
-    first = np.zeros(flags.shape, np.int32)
-    for name, bit in sorted(flag_bits.items(), key=lambda kv: -kv[1]):  # the lowest bit written last: it wins
-        first[(flags >> bit) & 1 == 1] = bit + 1
+    from ..reconstruct.diagnosis.checks import first_flag  # noqa: PLC0415
+
+    first = first_flag(flags, flag_bits).astype(np.int32)
     names = ["none", *(name for name, _ in sorted(flag_bits.items(), key=lambda kv: kv[1]))]
     features = {"index": list(range(len(names))), "flag": names}
     return (first, {"name": "flags (first set)", "features": features, "opacity": 0.5, **scale2,
